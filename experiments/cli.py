@@ -1,0 +1,47 @@
+"""The ``iarcs`` command line. Each sub-command lives in ``experiments/commands/<name>.py`` and
+registers itself with ``register(subparsers)``; handlers raise :class:`CLIError` (or a ValueError /
+FileNotFoundError with a clear message) for bad input, which is printed without a traceback."""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import sys
+
+#: Modules whose ``register(subparsers)`` adds sub-commands, in the order --help lists them.
+COMMAND_MODULES = [
+    "experiments.commands.data",
+    "experiments.commands.demo",
+]
+
+
+class CLIError(Exception):
+    """A user error: printed as ``iarcs: error: <message>`` with exit status 2."""
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="iarcs", description="iARCS: controllable 3D indoor scene generation with agentic RL.")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+    sub.required = True
+    for name in COMMAND_MODULES:
+        importlib.import_module(name).register(sub)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    try:
+        result = args.func(args)
+    except (CLIError, FileNotFoundError, ValueError) as err:
+        print(f"iarcs: error: {err}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("iarcs: interrupted", file=sys.stderr)
+        return 130
+    return int(result or 0)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,10 @@
+"""iarcs_env: the world of iARCS — rooms, floor plans, scenes, datasets, renders, metrics, the noise
+schedule and the Gymnasium denoising MDP. It imports neither ``agents`` nor ``rewards``' synthesis code."""
+
+from .floorplan import FloorPlan, FloorPlanError
+from .rooms import ROOMS, RoomSpec, get_room
+from .scene import Layout, SceneBatch, floor_features
+from .stats import DatasetStats
+
+__all__ = ["FloorPlan", "FloorPlanError", "ROOMS", "RoomSpec", "get_room", "Layout", "SceneBatch",
+           "floor_features", "DatasetStats"]
