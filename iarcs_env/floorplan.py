@@ -50,16 +50,16 @@ class FloorPlan:
     def from_vertices(cls, vertices) -> "FloorPlan":
         v = _clean_vertices(vertices)
         poly = Polygon(v)
-        if poly.area < 1e-6:
-            raise FloorPlanError(
-                f"floor polygon has zero area ({len(v)} vertices, all on a line?): {v.tolist()[:6]}"
-            )
+        if np.linalg.matrix_rank(v - v[0], tol=1e-9) < 2:
+            raise FloorPlanError(f"floor polygon has zero area (its {len(v)} vertices lie on a line): {v.tolist()[:6]}")
         if not poly.is_valid:
-            reason = shapely.validation.explain_validity(poly)
+            reason = shapely.is_valid_reason(poly)
             raise FloorPlanError(
                 f"floor polygon is not simple ({reason}); list its vertices in order around the boundary, "
                 "without the edges crossing"
             )
+        if poly.area < 1e-6:
+            raise FloorPlanError(f"floor polygon has zero area: {v.tolist()[:6]}")
         v.setflags(write=False)
         return cls(v)
 

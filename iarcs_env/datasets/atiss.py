@@ -99,7 +99,10 @@ def read_atiss_folder(root: str | Path, room_type: str | None = None) -> list[La
     for f in files:
         try:
             layouts.append(_read_room(f, vocab, room_type))
-        except (KeyError, ValueError, FloorPlanError) as err:
+        except KeyError as err:
+            name = str(err.args[0]).split(" ")[0]
+            raise DatasetFormatError(f"{f}: missing array '{name}' in boxes.npz") from None
+        except (ValueError, FloorPlanError) as err:
             raise DatasetFormatError(f"{f}: {err}") from None
     return layouts
 

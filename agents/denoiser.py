@@ -1,0 +1,431 @@
+"""The scene denoiser (MiDiffusion-style, iARCS appendix A) and :class:`ScenePrior`, which bundles it with
+the noise schedule, the dataset statistics and the room type, samples scenes and saves / loads checkpoints.
+
+Network, for x_t of shape (B, N, 8 + K) (N object slots; geometry 8 = translation 3, half size 3,
+[cos, sin] yaw; K class logits mapped to {-1, +1}):
+
+* slot embedding: geometry through a 2-layer MLP plus a linear map of the class part (a learnable class
+  embedding weighted by the noisy one-hot), summed; no positional encoding, so the network is
+  permutation-equivariant over slots;
+* floor encoder: a PointNet over the 256 boundary points with inward normals (x, z, nx, nz): per-point
+  MLP 4 -> 64 -> 64 -> 512, max-pool over points, then 512 -> 64 (widths [4, 64, 64, 512, 64]); the 64-d
+  floor feature is mapped to ``floor_tokens`` context tokens;
+* timestep: sinusoidal embedding -> MLP; it drives adaptive layer norm (shift / scale / gate per
+  sub-layer, zero-initialised as in DiT's adaLN-Zero);
+* ``num_layers`` blocks of self-attention over the slots, cross-attention to the floor tokens and a GELU
+  feed-forward; attention uses explicit ``q_proj``, ``k_proj``, ``v_proj``, ``out_proj`` ``nn.Linear``
+  layers (LoRA targets exactly these; ``nn.MultiheadAttention`` would bypass LoRA on its fast path);
+* output: epsilon of shape (B, N, 8 + K).
+
+Unconditional predictions (classifier-free guidance, condition dropout in training) use an all-zero floor
+input, which no real floor produces (its normals are unit vectors).
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import tempfile
+from dataclasses import asdict, dataclass, fields
+from pathlib import Path
+from typing import Sequence
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from iarcs_env.floorplan import FloorPlan
+from iarcs_env.rooms import RoomSpec, get_room
+from iarcs_env.scene import SceneBatch, floor_features
+from iarcs_env.schedule import NoiseSchedule, ScheduleConfig, guided_model_fn
+from iarcs_env.stats import DatasetStats
+
+GEOMETRY_DIM = 8
+CHECKPOINT_FORMAT = "iarcs-scene-prior"
+CHECKPOINT_VERSION = 1
+CHECKPOINT_DIR = Path(__file__).resolve().parent / "checkpoints"
+
+
+@dataclass
+class DenoiserConfig:
+    """Size of the denoiser. Presets: :meth:`paper` and :meth:`small` (see :data:`PRESETS`)."""
+
+    num_layers: int = 8
+    """Transformer blocks (self-attention, cross-attention, feed-forward)."""
+    width: int = 512
+    """Token width d of the slot embeddings and attention."""
+    num_heads: int = 4
+    """Attention heads (width must be divisible by it)."""
+    ff_dim: int = 2048
+    """Hidden width of the GELU feed-forward."""
+    dropout: float = 0.1
+    """Dropout in attention and feed-forward (training only)."""
+    pointnet: tuple = (4, 64, 64, 512, 64)
+    """PointNet widths: per-point MLP up to the second-to-last width, max-pool, then a linear map to the
+    last width (the floor feature)."""
+    floor_tokens: int = 4
+    """Context tokens the floor feature is mapped to for cross-attention (1 makes the attention weights
+    trivially 1)."""
+
+    def __post_init__(self):
+        self.pointnet = tuple(int(v) for v in self.pointnet)
+        if self.width % self.num_heads:
+            raise ValueError(f"width {self.width} is not divisible by num_heads {self.num_heads}")
+        if len(self.pointnet) < 3 or self.pointnet[0] != 4:
+            raise ValueError(f"pointnet widths must start with 4 (x, z, nx, nz) and have >= 3 entries; "
+                             f"got {list(self.pointnet)}")
+
+    @classmethod
+    def paper(cls) -> "DenoiserConfig":
+        """iARCS / MiDiffusion size: 8 layers, width 512, 4 heads, feed-forward 2048, dropout 0.1."""
+        return cls()
+
+    @classmethod
+    def small(cls) -> "DenoiserConfig":
+        """CPU default: a 20-step DDIM rollout of 32 bedrooms in about a second on 2 cores."""
+        return cls(num_layers=4, width=128, num_heads=4, ff_dim=512, dropout=0.0)
+
+    @classmethod
+    def tiny(cls) -> "DenoiserConfig":
+        """For tests only."""
+        return cls(num_layers=1, width=32, num_heads=2, ff_dim=64, dropout=0.0, pointnet=(4, 16, 32, 16),
+                   floor_tokens=2)
+
+    @classmethod
+    def from_preset(cls, name: str, **overrides) -> "DenoiserConfig":
+        if name not in PRESETS:
+            raise ValueError(f"unknown model preset {name!r}; choose one of: {', '.join(PRESETS)}")
+        base = asdict(PRESETS[name]())
+        unknown = sorted(set(overrides) - set(base))
+        if unknown:
+            raise ValueError(f"unknown denoiser field(s) {', '.join(unknown)}; known: {', '.join(base)}")
+        return cls(**{**base, **overrides})
+
+
+PRESETS = {"paper": DenoiserConfig.paper, "small": DenoiserConfig.small, "tiny": DenoiserConfig.tiny}
+
+
+# --- building blocks -----------------------------------------------------------------------------------
+class Attention(nn.Module):
+    """Multi-head attention with explicit q/k/v/out projections (LoRA-ready; never nn.MultiheadAttention)."""
+
+    def __init__(self, dim: int, num_heads: int, context_dim: int | None = None, dropout: float = 0.0):
+        super().__init__()
+        self.num_heads = num_heads
+        self.head_dim = dim // num_heads
+        self.dropout = dropout
+        kv = context_dim or dim
+        self.q_proj = nn.Linear(dim, dim)
+        self.k_proj = nn.Linear(kv, dim)
+        self.v_proj = nn.Linear(kv, dim)
+        self.out_proj = nn.Linear(dim, dim)
+
+    def forward(self, x: torch.Tensor, context: torch.Tensor | None = None) -> torch.Tensor:
+        ctx = x if context is None else context
+        b, n, d = x.shape
+        m = ctx.shape[1]
+        q = self.q_proj(x).view(b, n, self.num_heads, self.head_dim).transpose(1, 2)
+        k = self.k_proj(ctx).view(b, m, self.num_heads, self.head_dim).transpose(1, 2)
+        v = self.v_proj(ctx).view(b, m, self.num_heads, self.head_dim).transpose(1, 2)
+        o = F.scaled_dot_product_attention(q, k, v, dropout_p=self.dropout if self.training else 0.0)
+        return self.out_proj(o.transpose(1, 2).reshape(b, n, d))
+
+
+def modulate(x: torch.Tensor, shift: torch.Tensor, scale: torch.Tensor) -> torch.Tensor:
+    return x * (1 + scale[:, None]) + shift[:, None]
+
+
+class DenoiserBlock(nn.Module):
+    """adaLN-Zero block: self-attention over slots, cross-attention to the floor, GELU feed-forward."""
+
+    def __init__(self, cfg: DenoiserConfig):
+        super().__init__()
+        d = cfg.width
+        self.norm1 = nn.LayerNorm(d, elementwise_affine=False, eps=1e-6)
+        self.self_attn = Attention(d, cfg.num_heads, dropout=cfg.dropout)
+        self.norm2 = nn.LayerNorm(d, elementwise_affine=False, eps=1e-6)
+        self.cross_attn = Attention(d, cfg.num_heads, dropout=cfg.dropout)
+        self.norm3 = nn.LayerNorm(d, elementwise_affine=False, eps=1e-6)
+        self.ff = nn.Sequential(nn.Linear(d, cfg.ff_dim), nn.GELU(), nn.Dropout(cfg.dropout),
+                                nn.Linear(cfg.ff_dim, d), nn.Dropout(cfg.dropout))
+        self.ada = nn.Sequential(nn.SiLU(), nn.Linear(d, 9 * d))
+        nn.init.zeros_(self.ada[1].weight)
+        nn.init.zeros_(self.ada[1].bias)
+
+    def forward(self, x: torch.Tensor, temb: torch.Tensor, context: torch.Tensor) -> torch.Tensor:
+        s1, c1, g1, s2, c2, g2, s3, c3, g3 = self.ada(temb).chunk(9, dim=-1)
+        x = x + g1[:, None] * self.self_attn(modulate(self.norm1(x), s1, c1))
+        x = x + g2[:, None] * self.cross_attn(modulate(self.norm2(x), s2, c2), context)
+        x = x + g3[:, None] * self.ff(modulate(self.norm3(x), s3, c3))
+        return x
+
+
+class PointNetEncoder(nn.Module):
+    """PointNet over (B, P, 4) boundary points: per-point MLP, max-pool, linear -> (B, widths[-1])."""
+
+    def __init__(self, widths: Sequence[int]):
+        super().__init__()
+        widths = list(widths)
+        layers: list[nn.Module] = []
+        for a, b in zip(widths[:-2], widths[1:-1]):
+            layers += [nn.Linear(a, b), nn.ReLU()]
+        self.point_mlp = nn.Sequential(*layers)
+        self.head = nn.Linear(widths[-2], widths[-1])
+
+    def forward(self, points: torch.Tensor) -> torch.Tensor:
+        return self.head(self.point_mlp(points).max(dim=1).values)
+
+
+def timestep_embedding(t: torch.Tensor, dim: int, max_period: float = 10000.0) -> torch.Tensor:
+    """Sinusoidal embedding (B, dim) of (possibly fractional) timesteps."""
+    half = dim // 2
+    freqs = torch.exp(-math.log(max_period) * torch.arange(half, dtype=torch.float32, device=t.device) / half)
+    args = t.float()[:, None] * freqs[None]
+    emb = torch.cat([torch.cos(args), torch.sin(args)], dim=-1)
+    if dim % 2:
+        emb = F.pad(emb, (0, 1))
+    return emb
+
+
+class SceneDenoiser(nn.Module):
+    """eps_theta(x_t, t, floor): (B, N, 8 + K) -> (B, N, 8 + K)."""
+
+    def __init__(self, config: DenoiserConfig, feature_dim: int):
+        super().__init__()
+        if feature_dim <= GEOMETRY_DIM:
+            raise ValueError(f"feature_dim must exceed {GEOMETRY_DIM} (8 + K); got {feature_dim}")
+        self.config = config
+        self.feature_dim = feature_dim
+        d = config.width
+        k = feature_dim - GEOMETRY_DIM
+        self.geometry_embed = nn.Sequential(nn.Linear(GEOMETRY_DIM, d), nn.GELU(), nn.Linear(d, d))
+        self.class_embed = nn.Linear(k, d, bias=False)  # = learnable class embeddings weighted by the one-hot
+        self.time_embed = nn.Sequential(nn.Linear(d, d), nn.SiLU(), nn.Linear(d, d))
+        self.floor_encoder = PointNetEncoder(config.pointnet)
+        self.floor_proj = nn.Linear(config.pointnet[-1], config.floor_tokens * d)
+        self.floor_norm = nn.LayerNorm(d)
+        self.blocks = nn.ModuleList(DenoiserBlock(config) for _ in range(config.num_layers))
+        self.final_norm = nn.LayerNorm(d, elementwise_affine=False, eps=1e-6)
+        self.final_ada = nn.Sequential(nn.SiLU(), nn.Linear(d, 2 * d))
+        self.out = nn.Linear(d, feature_dim)
+        for lin in (self.final_ada[1], self.out):
+            nn.init.zeros_(lin.weight)
+            nn.init.zeros_(lin.bias)
+
+    def encode_floor(self, floor: torch.Tensor) -> torch.Tensor:
+        """Floor condition (B, P, 4) -> context tokens (B, floor_tokens, width). Zeros = unconditional."""
+        f = self.floor_encoder(floor)
+        tokens = self.floor_proj(f).view(f.shape[0], self.config.floor_tokens, self.config.width)
+        return self.floor_norm(tokens)
+
+    def forward(self, x: torch.Tensor, t: torch.Tensor, floor: torch.Tensor | None = None,
+                floor_context: torch.Tensor | None = None) -> torch.Tensor:
+        """``x`` (B, N, 8+K) noisy features, ``t`` (B,) or scalar timesteps, and either ``floor`` (B, P, 4)
+        or precomputed ``floor_context`` from :meth:`encode_floor` (reuse it across the steps of a
+        rollout). ``floor=None`` and no context means unconditional (an all-zero floor)."""
+        b = x.shape[0]
+        t = torch.as_tensor(t, device=x.device)
+        if t.ndim == 0:
+            t = t.expand(b)
+        if floor_context is None:
+            if floor is None:
+                floor = x.new_zeros(b, 1, 4)
+            floor_context = self.encode_floor(floor)
+        h = self.geometry_embed(x[..., :GEOMETRY_DIM]) + self.class_embed(x[..., GEOMETRY_DIM:])
+        temb = self.time_embed(timestep_embedding(t, self.config.width))
+        for block in self.blocks:
+            h = block(h, temb, floor_context)
+        shift, scale = self.final_ada(temb).chunk(2, dim=-1)
+        return self.out(modulate(self.final_norm(h), shift, scale))
+
+    def num_parameters(self) -> int:
+        return sum(p.numel() for p in self.parameters())
+
+    def flops_per_scene(self, num_slots: int, num_points: int = 256, include_floor: bool = False) -> int:
+        """Multiply-adds x 2 of one forward pass per scene (linear layers and attention products), without
+        the floor encoder unless ``include_floor`` (a rollout encodes the floor once)."""
+        c = self.config
+        d, n, m, k = c.width, num_slots, c.floor_tokens, self.feature_dim
+        macs = n * (GEOMETRY_DIM * d + d * d + (k - GEOMETRY_DIM) * d)  # slot embedding
+        macs += 2 * d * d  # time MLP
+        per_block = (
+            9 * d * d  # adaLN
+            + 4 * n * d * d + 2 * n * n * d  # self-attention
+            + 2 * n * d * d + 2 * m * d * d + 2 * n * m * d  # cross-attention (k/v over context tokens)
+            + 2 * n * d * c.ff_dim  # feed-forward
+        )
+        macs += c.num_layers * per_block + 2 * d * d + n * d * k
+        if include_floor:
+            w = list(c.pointnet)
+            macs += num_points * sum(a * b for a, b in zip(w[:-2], w[1:-1])) + w[-2] * w[-1] + w[-1] * m * d
+        return 2 * macs
+
+
+# --- the prior ------------------------------------------------------------------------------------------
+def centre_floor(floor: FloorPlan) -> FloorPlan:
+    """The floor moved so its bounding-box centre is the origin (the scene frame)."""
+    c = floor.centre
+    return floor if np.allclose(c, 0.0, atol=1e-9) else floor.translated(-c)
+
+
+class ScenePrior:
+    """Denoiser + noise schedule + dataset statistics + room type: a floor-conditioned scene sampler.
+
+    ``sample(floors)`` returns a :class:`SceneBatch` (scene frame: floors centred on their bounding box).
+    ``save(path)`` writes one ``.pt`` with configs, statistics and weights; ``load(path)`` reads it back;
+    ``load_default(room)`` loads the prior shipped in ``agents/checkpoints``.
+    """
+
+    def __init__(self, denoiser: SceneDenoiser, stats: DatasetStats, schedule: NoiseSchedule | None = None,
+                 meta: dict | None = None):
+        self.denoiser = denoiser
+        self.stats = stats
+        self.spec: RoomSpec = get_room(stats.room_type)
+        if denoiser.feature_dim != self.spec.feature_dim:
+            raise ValueError(f"denoiser has {denoiser.feature_dim} features per slot but {self.spec.name} "
+                             f"needs {self.spec.feature_dim}")
+        self.schedule = schedule or NoiseSchedule()
+        self.meta = dict(meta or {})
+
+    @classmethod
+    def create(cls, room: str | RoomSpec, stats: DatasetStats, preset: str | DenoiserConfig = "small",
+               schedule: NoiseSchedule | None = None, **overrides) -> "ScenePrior":
+        spec = get_room(room)
+        cfg = preset if isinstance(preset, DenoiserConfig) else DenoiserConfig.from_preset(preset, **overrides)
+        return cls(SceneDenoiser(cfg, spec.feature_dim), stats, schedule)
+
+    @property
+    def device(self) -> torch.device:
+        return next(self.denoiser.parameters()).device
+
+    @property
+    def num_slots(self) -> int:
+        return self.spec.max_objects
+
+    def to(self, device) -> "ScenePrior":
+        self.denoiser.to(device)
+        return self
+
+    # --- conditioning -------------------------------------------------------------------------------
+    def floor_condition(self, floors: Sequence[FloorPlan]) -> torch.Tensor:
+        """(B, 256, 4) floor features of (centred) floors, on the model's device."""
+        return floor_features([centre_floor(f) for f in floors], self.stats).to(self.device)
+
+    def model_fn(self, floor_cond: torch.Tensor, guidance_scale: float = 1.0):
+        """``f(x_t, t) -> eps`` for a batch of floor conditions, the floor encoded once."""
+        net = self.denoiser
+        ctx = net.encode_floor(floor_cond)
+        unc = net.encode_floor(torch.zeros_like(floor_cond)) if guidance_scale != 1.0 else None
+        return guided_model_fn(lambda x, t, c: net(x, t, floor_context=c), ctx, guidance_scale, unc)
+
+    # --- sampling ---------------------------------------------------------------------------------------
+    @torch.no_grad()
+    def sample_features(self, floors: Sequence[FloorPlan], num_steps: int = 20, eta: float = 1.0,
+                        generator: torch.Generator | None = None, guidance_scale: float = 1.0,
+                        return_trajectory: bool = False):
+        """DDIM rollout; returns x_0 (B, N, 8+K) (and the trajectory, see NoiseSchedule.sample)."""
+        was_training = self.denoiser.training
+        self.denoiser.eval()
+        try:
+            cond = self.floor_condition(floors)
+            shape = (len(floors), self.num_slots, self.spec.feature_dim)
+            gen_device = generator.device if generator is not None else self.device
+            x_T = torch.randn(shape, generator=generator, device=gen_device).to(self.device)
+            return self.schedule.sample(self.model_fn(cond, guidance_scale), shape, num_steps=num_steps, eta=eta,
+                                        generator=generator, x_T=x_T, return_trajectory=return_trajectory)
+        finally:
+            self.denoiser.train(was_training)
+
+    def sample(self, floors: Sequence[FloorPlan], num_steps: int = 20, eta: float = 1.0,
+               generator: torch.Generator | None = None, guidance_scale: float = 1.0,
+               batch_size: int | None = None, ids: Sequence[str] | None = None) -> SceneBatch:
+        """Scenes for the given floor plans (any frame; returned centred). ``batch_size`` splits big requests
+        into chunks run one after another (the random stream is then consumed chunk by chunk)."""
+        floors = [centre_floor(f) for f in floors]
+        if not floors:
+            raise ValueError("sample needs at least one floor plan")
+        bs = batch_size or len(floors)
+        xs = [self.sample_features(floors[i:i + bs], num_steps, eta, generator, guidance_scale)
+              for i in range(0, len(floors), bs)]
+        x0 = torch.cat(xs).cpu()
+        return SceneBatch.decode(x0, self.stats, floors, list(ids) if ids else
+                                 [f"{self.spec.name}_{i:05d}" for i in range(len(floors))])
+
+    # --- checkpoints --------------------------------------------------------------------------------------
+    def state(self) -> dict:
+        return {
+            "format": CHECKPOINT_FORMAT, "version": CHECKPOINT_VERSION, "room_type": self.spec.name,
+            "denoiser_config": asdict(self.denoiser.config), "feature_dim": self.denoiser.feature_dim,
+            "schedule_config": asdict(self.schedule.config), "stats": self.stats.to_json(), "meta": self.meta,
+            "state_dict": {k: v.detach().cpu().clone() for k, v in self.denoiser.state_dict().items()},
+        }
+
+    def save(self, path: str | Path) -> Path:
+        """Write the checkpoint atomically (a temporary file renamed into place)."""
+        path = Path(path)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        atomic_torch_save(self.state(), path)
+        return path
+
+    @classmethod
+    def from_state(cls, state: dict, where: str = "checkpoint") -> "ScenePrior":
+        if not isinstance(state, dict) or state.get("format") != CHECKPOINT_FORMAT:
+            raise ValueError(f"{where} is not an iARCS scene-prior checkpoint (no format {CHECKPOINT_FORMAT!r}); "
+                             "a pretraining state (train_state.pt) is exported with agents.pretrain.export_prior")
+        if state.get("version", 0) > CHECKPOINT_VERSION:
+            raise ValueError(f"{where} has checkpoint version {state['version']}; this iARCS reads up to "
+                             f"{CHECKPOINT_VERSION}: upgrade iARCS")
+        known = {f.name for f in fields(DenoiserConfig)}
+        cfg = DenoiserConfig(**{k: v for k, v in state["denoiser_config"].items() if k in known})
+        stats = DatasetStats.from_json(state["stats"], state["room_type"])
+        net = SceneDenoiser(cfg, int(state["feature_dim"]))
+        net.load_state_dict(state["state_dict"])
+        net.eval()
+        sched = NoiseSchedule(ScheduleConfig(**state.get("schedule_config", {})))
+        return cls(net, stats, sched, state.get("meta"))
+
+    @classmethod
+    def load(cls, path: str | Path, map_location="cpu") -> "ScenePrior":
+        path = Path(path)
+        if not path.exists():
+            raise FileNotFoundError(f"no scene-prior checkpoint at {path}")
+        try:
+            state = torch.load(path, map_location=map_location, weights_only=True)
+        except Exception as err:  # noqa: BLE001 - report any unreadable file the same way
+            raise ValueError(f"{path} is not a readable PyTorch checkpoint ({err})") from None
+        return cls.from_state(state, str(path))
+
+    @classmethod
+    def default_path(cls, room: str = "bedroom") -> Path:
+        return CHECKPOINT_DIR / f"{get_room(room).name}_small.pt"
+
+    @classmethod
+    def load_default(cls, room: str = "bedroom") -> "ScenePrior":
+        """The small prior shipped with the package (``agents/checkpoints/<room>_small.pt``)."""
+        path = cls.default_path(room)
+        if not path.exists():
+            shipped = sorted(p.stem.replace("_small", "") for p in CHECKPOINT_DIR.glob("*_small.pt"))
+            raise FileNotFoundError(
+                f"no shipped prior for {get_room(room).name} (shipped: {', '.join(shipped) or 'none'}); train one "
+                f"with `iarcs pretrain --config experiments/pretrain_{get_room(room).name}.yaml` and pass its "
+                "prior.pt as --checkpoint")
+        return cls.load(path)
+
+
+def atomic_torch_save(obj, path: str | Path) -> None:
+    """torch.save to a temporary file in the same folder, then rename over ``path`` (never half-written)."""
+    path = Path(path)
+    fd, tmp = tempfile.mkstemp(prefix=path.name + ".", suffix=".tmp", dir=path.parent)
+    os.close(fd)
+    try:
+        torch.save(obj, tmp)
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        raise
+
+
+__all__ = ["Attention", "DenoiserConfig", "PRESETS", "PointNetEncoder", "SceneDenoiser", "ScenePrior",
+           "atomic_torch_save", "timestep_embedding"]

@@ -1,0 +1,42 @@
+"""Shared fixtures: paths to the real 3D-FRONT layouts (skipped when absent) and hand-made layouts."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from iarcs_env import FloorPlan, Layout
+
+REPO = Path(__file__).resolve().parents[1]
+REAL_DATA = REPO.parent / "shared" / "data" / "3dfront"
+
+
+def real_file(name: str) -> Path:
+    path = REAL_DATA / name
+    if not path.exists():
+        pytest.skip(f"real 3D-FRONT layouts not found at {path} (research-only data, kept outside the repository)")
+    return path
+
+
+@pytest.fixture
+def real_bedrooms_path() -> Path:
+    return real_file("bedroom_val.json")
+
+
+@pytest.fixture
+def real_livingrooms_path() -> Path:
+    return real_file("livingroom_val.json")
+
+
+def make_layout(objects, floor=((0, 0), (4, 0), (4, 3), (0, 3)), room="bedroom", id="hand") -> Layout:
+    """A layout from (label, (x, y, z), (hx, hy, hz), yaw) tuples."""
+    labels = [o[0] for o in objects]
+    return Layout(room, FloorPlan.from_vertices(floor), labels,
+                  np.array([o[1] for o in objects], float).reshape(-1, 3),
+                  np.array([o[2] for o in objects], float).reshape(-1, 3),
+                  np.array([o[3] for o in objects], float), id=id)
+
+
+L_SHAPE = ((0, 0), (4, 0), (4, 2), (2, 2), (2, 4), (0, 4))
