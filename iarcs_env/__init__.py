@@ -8,3 +8,7 @@ from .stats import DatasetStats
 
 __all__ = ["FloorPlan", "FloorPlanError", "ROOMS", "RoomSpec", "get_room", "Layout", "SceneBatch",
            "floor_features", "DatasetStats"]
+
+from .env import register_envs as _register_envs
+
+_register_envs()
