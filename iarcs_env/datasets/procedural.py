@@ -12,7 +12,8 @@ from hand-written rules and parameters:
 * **Placement rules** (:class:`_Room` does the geometry): the bed's head is against a wall with
   nightstands beside the head; wardrobes, cabinets and shelves stand against walls facing the room; a TV
   stand faces the bed or the sofa; desks and dressing tables stand against a wall with a chair or stool
-  in front; dining tables stand free with chairs around them; coffee tables stand in front of sofas with
+  in front; dining tables stand free with chairs around them (in a cramped room, against a wall with
+  chairs on the open sides); coffee tables stand in front of sofas with
   armchairs at their sides; ceiling and pendant lamps hang from the ceiling over the bed, the dining
   table, the coffee table or the room's centre. Each room also keeps a door's swing free.
 * **Flaws** of the kinds real 3D-FRONT has (:data:`FLAWS`): nightstands and side tables overlapping the
@@ -21,6 +22,8 @@ from hand-written rules and parameters:
   0 gives rooms with no overlap between ground objects and every footprint inside the floor; 1 gives
   rates like the real validation data (bedrooms: Col_obj ~41%, Col_scene ~56%, R_out ~7%).
 
+Living rooms draw a furnishing level (:data:`RICH_SIGMA`) that grows with floor area and tilts the
+counts of optional pieces, which widens the object-count histogram the way real rooms vary.
 Class mixes and object counts are hand-calibrated against the real data's summary figures
 (``benchmarks/bench_realism.py`` checks them); no data is copied. Conventions are those of
 :mod:`iarcs_env.scene`: y up, the floor is the x-z plane (centred at the origin), yaw about +y with
@@ -44,6 +47,10 @@ from ..scene import Layout
 
 #: Smallest gap (m) between two objects, or an object and a wall, in a flawless placement.
 EPS = 0.005
+
+#: Living rooms' furnishing level ``exp(N(0, RICH_SIGMA)) * (area / 28 m^2) ** RICH_AREA`` tilts the counts
+#: of optional pieces (cabinets, side tables, armchairs, stools, a second table, dining chairs).
+RICH_SIGMA, RICH_AREA, RICH_MAX = 0.55, 0.5, 1.8
 
 
 # --------------------------------------------------------------------------------------------------------
@@ -139,7 +146,7 @@ ROOM_SHAPES: dict[str, RoomShape] = {
 
 #: Base probabilities of the deliberate flaws at ``flaw_rate = 1`` (each is multiplied by flaw_rate).
 FLAWS: dict[str, float] = {
-    "nightstand_into_bed": 0.55,    # a nightstand (or side table) overlaps the bed's side by 2-15 cm
+    "nightstand_into_bed": 0.65,    # a nightstand (or side table) overlaps the bed's side by 2-15 cm
     "into_wall": 0.2,               # nightstand / side table pushed 7-16 cm into the wall behind it
     "desk_into_wall": 0.12,         # desk, dressing table pushed into the wall
     "wall_object_into_wall": 0.03,  # wardrobe, cabinet, TV stand, bed ... pushed into the wall
@@ -149,20 +156,29 @@ FLAWS: dict[str, float] = {
     "sofa_overlap": 0.35,           # coffee table in an L sofa's box, side table touching a sofa arm
     "dining_chair_jostle": 0.05,    # two neighbouring dining chairs touching
     "slide_into_neighbour": 0.25,   # a wall object slid along the wall into its neighbour by 2-10 cm
+    "living_into_wall": 0.11,       # living room: TV stand, shelf, console table, stool ... into the wall
 }
 
 
 # --------------------------------------------------------------------------------------------------------
 # Floor plans
 # --------------------------------------------------------------------------------------------------------
+def _tilted(p: float, tilt: float) -> float:
+    """A probability ``p`` tilted like :func:`_pick_count`'s second index (odds times ``tilt``)."""
+    return p * tilt / (1 - p + p * tilt)
+
+
 def _pick(rng: np.random.Generator, table: dict[str, float]) -> str:
     keys = list(table)
     p = np.array([table[k] for k in keys], dtype=float)
     return keys[int(np.searchsorted(np.cumsum(p), rng.random() * p.sum(), side="right").clip(0, len(keys) - 1))]
 
 
-def _pick_count(rng: np.random.Generator, probs) -> int:
-    """Index drawn from a list of (unnormalised) probabilities."""
+def _pick_count(rng: np.random.Generator, probs, tilt: float = 1.0) -> int:
+    """Index drawn from a list of (unnormalised) probabilities; ``tilt`` > 1 favours larger indices
+    (``p_k * tilt**k``), < 1 smaller ones."""
+    if tilt != 1.0:
+        probs = [p * tilt ** k for k, p in enumerate(probs)]
     c = np.cumsum(probs)
     return int(min(np.searchsorted(c, rng.random() * c[-1], side="right"), len(probs) - 1))
 
@@ -300,6 +316,7 @@ class _Room:
         self.notches = notches
         self.ceiling = ceiling
         self.flaw_rate = flaw_rate
+        self.rich = 1.0  # how generously the room is furnished (tilts optional counts; see _livingroom)
         self.poly = floor_polygon(W, D, notches)
         v = np.asarray(self.poly.exterior.coords)[:-1]
         self.vertices = v
@@ -773,11 +790,13 @@ def _bedroom(room: _Room):
         room.lamp("ceiling_lamp", round(ox, 3), round(oz, 3))
 
 
-def _dining_group(room: _Room, zone, n_chairs_probs, square_p=0.15, chair_label="dining_chair") -> int | None:
+def _dining_group(room: _Room, zone, n_chairs_probs, square_p=0.15, chair_label="dining_chair",
+                  tilt: float = 1.0) -> int | None:
     """A dining table standing free in ``zone`` (its long side along the zone's long axis) with chairs
-    around it and a pendant lamp over it. Returns the table's index."""
+    around it; where no free spot is found, a smaller table pushed against a wall with chairs on its
+    three open sides. Returns the table's index."""
     rng = room.rng
-    n = _pick_count(rng, n_chairs_probs)
+    n = _pick_count(rng, n_chairs_probs, tilt)
     # seats per side (long sides a, b) and at the ends
     plans = {0: (0, 0, 0), 1: (1, 0, 0), 2: (1, 1, 0), 3: (2, 1, 0), 4: (2, 2, 0), 5: (2, 2, 1),
              6: (3, 3, 0), 7: (3, 3, 1), 8: (3, 3, 2), 9: (4, 4, 1), 10: (4, 4, 2)}
@@ -802,11 +821,21 @@ def _dining_group(room: _Room, zone, n_chairs_probs, square_p=0.15, chair_label=
         t = room.free_standing("dining_table", size, yaw, centre, jitter=jitter, margin=margin, tries=16)
         if t is not None:
             break
-        if attempt >= 3:  # fewer chairs (a smaller table) before giving up
-            n = max(min(n, 2), n - 2)
+        if attempt >= 3:  # fewer chairs (a smaller table) before pushing it against a wall
+            n = max(min(n, 4), n - 2)
             square = square or n <= 2
-    if t is None:
-        return None
+    if t is None:  # a small room: the table against a wall, chairs along its front and at its ends
+        n = min(n, 5)
+        square = n <= 3 and rng.random() < 0.5
+        size = _sz(rng, "dining_table:square" if square else "dining_table")
+        for z in (zone, None):
+            t = room.on_wall("dining_table", size, clear=chair[1] + 0.15, zone=z, min_w=0.7, slide=False)
+            if t is not None:
+                break
+        if t is None:
+            return None
+        per_a = min(n, 1 if square else 3 if room.objs[t].w > 1.6 else 2)
+        per_b, ends = 0, min(n - per_a, 2)
     tab = room.objs[t]
     seats = []
     for side, k in ((1, per_a), (-1, per_b)):
@@ -851,8 +880,8 @@ def _dining_group(room: _Room, zone, n_chairs_probs, square_p=0.15, chair_label=
 def _living_group(room: _Room, zone, dining_zone):
     """Sofa, coffee table, TV stand, side tables and armchairs in ``zone``."""
     rng = room.rng
-    sofa_label = _pick(rng, {"multi_seat_sofa": 0.58, "l_shaped_sofa": 0.18, "loveseat_sofa": 0.03,
-                             "chaise_longue_sofa": 0.01, "lazy_sofa": 0.003, None: 0.2})
+    sofa_label = _pick(rng, {"multi_seat_sofa": 0.6, "l_shaped_sofa": 0.22, "loveseat_sofa": 0.05,
+                             "chaise_longue_sofa": 0.01, "lazy_sofa": 0.002, None: 0.12})
     sofa = None
     if sofa_label is not None:
         size = _sz(rng, sofa_label)
@@ -892,7 +921,7 @@ def _living_group(room: _Room, zone, dining_zone):
                 if s.label == "l_shaped_sofa" and room.flaw("sofa_overlap"):
                     room.move_back(ct, -(gap + rng.uniform(0.1, 0.5)))  # ct faces the sofa: move toward it
                 # armchairs / lounge chairs at the coffee table's sides, facing it
-                n_arm = _pick_count(rng, [0.72, 0.2, 0.07, 0.01])
+                n_arm = _pick_count(rng, [0.72, 0.2, 0.07, 0.01], room.rich)
                 n_lounge = _pick_count(rng, [0.85, 0.1, 0.05])
                 seats = ["armchair"] * n_arm + ["lounge_chair"] * n_lounge
                 sides = [1, -1] if rng.random() < 0.5 else [-1, 1]
@@ -912,9 +941,9 @@ def _living_group(room: _Room, zone, dining_zone):
         # TV stand facing the sofa
         if rng.random() < 0.86:
             tv = room.across(sofa, "tv_stand", _sz(rng, "tv_stand"), min_dist=1.2)
-            _wall_flaw(room, tv)
+            _wall_flaw(room, tv, "living_into_wall")
         # side tables beside the sofa's arms
-        n_side = _pick_count(rng, [0.45, 0.2, 0.35])
+        n_side = _pick_count(rng, [0.3, 0.25, 0.45], room.rich)
         sides = [1, -1] if rng.random() < 0.5 else [-1, 1]
         for side in sides[:n_side]:
             label = "corner_side_table" if rng.random() < 0.75 else "round_end_table"
@@ -938,47 +967,54 @@ def _livingroom(room: _Room):
     rng = room.rng
     room.door()
     area = room.poly.area
-    has_dining = rng.random() < (0.93 if area > 18 else 0.7)
+    # how generously this room is furnished: bigger rooms hold more, and some owners simply own more
+    room.rich = float(np.clip(math.exp(rng.normal(0, RICH_SIGMA)) * (area / 28) ** RICH_AREA, 0.4, RICH_MAX))
+    has_dining = rng.random() < (0.85 if area > 18 else 0.76)
+    if not has_dining:  # the whole room is a living room: more seats, side tables and storage
+        room.rich = min(room.rich * 1.6, 2.5)
+    rich = room.rich
     if has_dining:
         living, dining = room.zone_split(rng.uniform(0.5, 0.62))
     else:
         living, dining = (-room.W / 2, -room.D / 2, room.W / 2, room.D / 2), None
     table = None
     if dining is not None:
-        table = _dining_group(room, dining, [0.03, 0.05, 0.1, 0.03, 0.45, 0.11, 0.16, 0.03, 0.025, 0.0, 0.01],
+        table = _dining_group(room, dining, [0.02, 0.03, 0.05, 0.02, 0.48, 0.11, 0.2, 0.03, 0.04, 0.0, 0.01],
+                              tilt=math.sqrt(rich),
                               chair_label="dining_chair" if rng.random() < 0.95 else
-                              ("lounge_chair" if rng.random() < 0.7 else "chinese_chair"))
+                              ("lounge_chair" if rng.random() < 0.9 else "chinese_chair"))
     sofa = _living_group(room, living, dining)
     if dining is not None:
         # a second table: a small table against a wall with a seat or two, or bar stools
-        for p in (0.25, 0.08):
-            if rng.random() < p:
+        for p in (0.15, 0.05):
+            if rng.random() < _tilted(p, rich):
                 t2 = room.on_wall("dining_table", _sz(rng, "dining_table:square" if rng.random() < 0.5 else "dining_table"),
                                   clear=0.6, min_w=0.7)
                 if t2 is not None:
                     for k in range(_pick_count(rng, [0.5, 0.3, 0.2])):
                         o = room.objs[t2]
                         off = 0.0 if k == 0 else (o.w / 4) * (1 if k == 1 else -1)
-                        _seat_at(room, t2, "dining_chair" if rng.random() < 0.6 else "stool",
+                        _seat_at(room, t2, "dining_chair" if rng.random() < 0.75 else "stool",
                                  _sz(rng, "dining_chair"), "dining_chair_tucked", under=(0.05, 0.2), offset=off)
     # storage and other pieces against walls
-    for _ in range(_pick_count(rng, [0.42, 0.34, 0.16, 0.06, 0.02])):
+    for _ in range(_pick_count(rng, [0.5, 0.3, 0.13, 0.05, 0.02], rich)):
         i = room.on_wall("cabinet", _sz(rng, "cabinet:tall" if rng.random() < 0.3 else "cabinet"), clear=0.5,
                          min_w=0.5)
         _wall_flaw(room, i)
     for label, counts, key in (("bookshelf", [0.83, 0.14, 0.03], "bookshelf"),
-                               ("console_table", [0.95, 0.035, 0.015], "console_table"),
+                               ("console_table", [0.92, 0.06, 0.02], "console_table"),
                                ("desk", [0.965, 0.035], "desk"), ("shelf", [0.97, 0.03], "shelf"),
                                ("wardrobe", [0.975, 0.025], "wardrobe"), ("wine_cabinet", [0.99, 0.01], "wine_cabinet")):
         for _ in range(_pick_count(rng, counts)):
             i = room.on_wall(label, _sz(rng, key), clear=0.5, min_w=0.4)
+            _wall_flaw(room, i, "living_into_wall")
             if label == "desk" and i is not None and rng.random() < 0.5:
                 _seat_at(room, i, "dining_chair" if rng.random() < 0.5 else "lounge_chair", _sz(rng, "chair"),
                          "chair_tucked")
     # extra seats and small tables
-    for _ in range(_pick_count(rng, [0.74, 0.13, 0.08, 0.03, 0.02])):
+    for _ in range(_pick_count(rng, [0.8, 0.1, 0.06, 0.02, 0.02], rich)):
         size = _sz(rng, "stool:bar" if rng.random() < 0.4 else "stool")
-        room.on_wall("stool", size)
+        _wall_flaw(room, room.on_wall("stool", size), "living_into_wall", depth=(0.06, 0.12))
     if rng.random() < 0.08:
         room.on_wall("round_end_table", _sz(rng, "round_end_table"), where="corner")
     if rng.random() < 0.08:
