@@ -25,7 +25,6 @@ from __future__ import annotations
 
 import math
 import os
-import tempfile
 from dataclasses import asdict, dataclass, fields
 from pathlib import Path
 from typing import Sequence
@@ -84,7 +83,7 @@ class DenoiserConfig:
     @classmethod
     def small(cls) -> "DenoiserConfig":
         """CPU default: a 20-step DDIM rollout of 32 bedrooms in about a second on 2 cores."""
-        return cls(num_layers=4, width=128, num_heads=4, ff_dim=512, dropout=0.0)
+        return cls(num_layers=6, width=128, num_heads=4, ff_dim=512, dropout=0.0)
 
     @classmethod
     def tiny(cls) -> "DenoiserConfig":
@@ -353,19 +352,23 @@ class ScenePrior:
                                  [f"{self.spec.name}_{i:05d}" for i in range(len(floors))])
 
     # --- checkpoints --------------------------------------------------------------------------------------
-    def state(self) -> dict:
+    def state(self, half: bool = False) -> dict:
+        """Checkpoint contents; ``half`` stores floating-point weights as float16 (loaded back as float32)."""
+        weights = {k: v.detach().cpu().clone() for k, v in self.denoiser.state_dict().items()}
+        if half:
+            weights = {k: v.half() if v.is_floating_point() else v for k, v in weights.items()}
         return {
             "format": CHECKPOINT_FORMAT, "version": CHECKPOINT_VERSION, "room_type": self.spec.name,
             "denoiser_config": asdict(self.denoiser.config), "feature_dim": self.denoiser.feature_dim,
             "schedule_config": asdict(self.schedule.config), "stats": self.stats.to_json(), "meta": self.meta,
-            "state_dict": {k: v.detach().cpu().clone() for k, v in self.denoiser.state_dict().items()},
+            "state_dict": weights,
         }
 
-    def save(self, path: str | Path) -> Path:
-        """Write the checkpoint atomically (a temporary file renamed into place)."""
+    def save(self, path: str | Path, half: bool = False) -> Path:
+        """Write the checkpoint atomically (a temporary file renamed into place); see :meth:`state`."""
         path = Path(path)
         path.parent.mkdir(parents=True, exist_ok=True)
-        atomic_torch_save(self.state(), path)
+        atomic_torch_save(self.state(half), path)
         return path
 
     @classmethod
@@ -416,14 +419,12 @@ class ScenePrior:
 def atomic_torch_save(obj, path: str | Path) -> None:
     """torch.save to a temporary file in the same folder, then rename over ``path`` (never half-written)."""
     path = Path(path)
-    fd, tmp = tempfile.mkstemp(prefix=path.name + ".", suffix=".tmp", dir=path.parent)
-    os.close(fd)
+    tmp = path.with_name(f"{path.name}.{os.getpid()}.tmp")  # created with the usual permissions (umask)
     try:
         torch.save(obj, tmp)
         os.replace(tmp, path)
     except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
+        tmp.unlink(missing_ok=True)
         raise
 
 

@@ -12,6 +12,8 @@ import sys
 COMMAND_MODULES = [
     "experiments.commands.data",
     "experiments.commands.demo",
+    "experiments.commands.evaluate",
+    "experiments.commands.prior",
 ]
 
 

@@ -1,0 +1,464 @@
+"""Pretraining of the scene prior (DDPM epsilon loss) on any layout dataset the readers load.
+
+One readable file: a :class:`PretrainConfig` dataclass (loaded from YAML, a docstring per field), the
+data pipeline (scenes as tensors, 90-degree rotation and slot-permutation augmentation done on tensors),
+and :func:`train` with EMA weights, condition dropout for classifier-free guidance, a tqdm bar,
+TensorBoard scalars and checkpoints that resume after an interruption.
+
+Files in ``out`` (the run folder):
+
+* ``train_state.pt``: model, EMA, optimizer, step and RNG states; written atomically every
+  ``checkpoint_every`` steps; a run started again with the same ``out`` resumes from it;
+* ``prior.pt``: the EMA weights as a :class:`agents.denoiser.ScenePrior` checkpoint (what sampling and
+  RL fine-tuning load), written with every checkpoint;
+* ``config.yaml``, ``dataset_stats.json``, ``metrics.jsonl`` (one line per logged step) and ``tb/``.
+"""
+
+from __future__ import annotations
+
+import copy
+import dataclasses
+import difflib
+import json
+import math
+import random
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any, Callable, Sequence
+
+import numpy as np
+import torch
+
+from iarcs_env.rooms import get_room
+from iarcs_env.scene import Layout, SceneBatch
+from iarcs_env.schedule import NoiseSchedule
+from iarcs_env.stats import DatasetStats
+
+from .denoiser import DenoiserConfig, SceneDenoiser, ScenePrior, atomic_torch_save
+
+REPO_ROOT = Path(__file__).resolve().parents[1]
+STATE_FILE = "train_state.pt"
+PRIOR_FILE = "prior.pt"
+
+
+@dataclass
+class PretrainConfig:
+    """Pretraining of one room type's scene prior. Every field can be set in the YAML file."""
+
+    room: str = "bedroom"
+    """Room type: bedroom, livingroom or diningroom."""
+    dataset: str = "procedural"
+    """``procedural`` (the embedded generator), a neutral-JSON layout file or an ATISS folder. A relative
+    path is looked up from the working directory, then from the repository root."""
+    num_scenes: int = 10000
+    """Scenes drawn from the procedural generator (ignored for files)."""
+    data_seed: int = 0
+    """Seed of the procedural generator (and of the validation split)."""
+    val_scenes: int = 256
+    """Scenes held out to measure a validation loss (0: none)."""
+    preset: str = "small"
+    """Denoiser size preset: small (CPU) or paper (8 layers, width 512)."""
+    model: dict = field(default_factory=dict)
+    """Overrides of the preset's fields (num_layers, width, num_heads, ff_dim, dropout, pointnet,
+    floor_tokens)."""
+    steps: int = 6000
+    """Total optimizer steps of the run (a resumed run continues up to this)."""
+    batch_size: int = 128
+    """Scenes per optimizer step."""
+    lr: float = 5e-4
+    """Peak learning rate of AdamW."""
+    min_lr_ratio: float = 0.1
+    """The cosine decay ends at ``lr * min_lr_ratio``."""
+    warmup_steps: int = 300
+    """Linear learning-rate warm-up steps."""
+    weight_decay: float = 0.0
+    """AdamW weight decay."""
+    grad_clip: float = 1.0
+    """Gradient-norm clip (0: none)."""
+    ema_decay: float = 0.999
+    """Decay of the exponential moving average of the weights (the exported prior uses the EMA)."""
+    cond_drop_prob: float = 0.1
+    """Probability of dropping the floor condition (zeroed) per scene: enables classifier-free guidance."""
+    rotation_augment: bool = True
+    """Rotate each training scene by a random multiple of 90 degrees (floor and objects together)."""
+    permutation_augment: bool = True
+    """Shuffle each training scene's object slots."""
+    checkpoint_every: int = 500
+    """Steps between checkpoints (train_state.pt and prior.pt)."""
+    log_every: int = 50
+    """Steps between logged training losses (TensorBoard, metrics.jsonl)."""
+    eval_every: int = 500
+    """Steps between validation losses of the EMA weights."""
+    out: str = "out/pretrain/bedroom_small"
+    """Run folder (checkpoints, logs). Keep weights trained on research-only data out of the repository."""
+    seed: int = 0
+    """Seed of initialisation, batches, noise and augmentation."""
+    num_threads: int = 0
+    """torch CPU threads (0: torch's default)."""
+    tensorboard: bool = True
+    """Write TensorBoard scalars to ``out/tb``."""
+
+    def __post_init__(self):
+        get_room(self.room)
+        DenoiserConfig.from_preset(self.preset, **dict(self.model))
+        for name in ("num_scenes", "steps", "batch_size", "checkpoint_every", "log_every", "eval_every"):
+            if getattr(self, name) <= 0:
+                raise ValueError(f"{name} must be positive, got {getattr(self, name)}")
+        if not 0 <= self.cond_drop_prob < 1:
+            raise ValueError(f"cond_drop_prob must be in [0, 1), got {self.cond_drop_prob}")
+        if not 0 <= self.ema_decay < 1:
+            raise ValueError(f"ema_decay must be in [0, 1), got {self.ema_decay}")
+
+    def denoiser_config(self) -> DenoiserConfig:
+        return DenoiserConfig.from_preset(self.preset, **dict(self.model))
+
+
+def config_from_dict(data: dict, where: str = "config") -> PretrainConfig:
+    """Build a :class:`PretrainConfig`, rejecting unknown keys and values of the wrong type."""
+    if not isinstance(data, dict):
+        raise ValueError(f"{where}: expected a mapping of settings, got {type(data).__name__}")
+    known = {f.name: f for f in dataclasses.fields(PretrainConfig)}
+    defaults = PretrainConfig()
+    values: dict[str, Any] = {}
+    for key, value in data.items():
+        if key not in known:
+            close = difflib.get_close_matches(str(key), list(known), n=1)
+            hint = f" (did you mean {close[0]!r}?)" if close else ""
+            raise ValueError(f"{where}: unknown key {key!r}{hint}; known keys: {', '.join(known)}")
+        expected = type(getattr(defaults, key))
+        if expected is float and isinstance(value, int) and not isinstance(value, bool):
+            value = float(value)
+        wrong = not isinstance(value, expected) or (expected is not bool and isinstance(value, bool))
+        if wrong:
+            raise ValueError(f"{where}: {key} must be a {expected.__name__}, got {value!r}")
+        values[key] = value
+    try:
+        return PretrainConfig(**values)
+    except (TypeError, ValueError) as err:
+        raise ValueError(f"{where}: {err}") from None
+
+
+def load_config(path: str | Path, **overrides) -> PretrainConfig:
+    """Read a YAML config; keyword ``overrides`` (e.g. ``steps=100``) win over the file."""
+    import yaml
+
+    path = Path(path)
+    if not path.exists():
+        raise FileNotFoundError(f"no config file at {path} (see experiments/pretrain_*.yaml for examples)")
+    try:
+        data = yaml.safe_load(path.read_text()) or {}
+    except yaml.YAMLError as err:
+        raise ValueError(f"{path} is not valid YAML ({err})") from None
+    if not isinstance(data, dict):
+        raise ValueError(f"{path}: expected a mapping of settings at the top level")
+    data.update({k: v for k, v in overrides.items() if v is not None})
+    return config_from_dict(data, str(path))
+
+
+def resolve_dataset(source: str) -> str:
+    """``procedural`` as is; a relative path from the working directory, else from the repository root."""
+    if source.lower() in ("procedural", "synthetic"):
+        return source
+    p = Path(source).expanduser()
+    if p.is_absolute():
+        candidates = [p]
+    else:
+        candidates = [Path.cwd() / p, REPO_ROOT / p]
+    for c in candidates:
+        if c.exists():
+            return str(c.resolve())
+    raise FileNotFoundError(
+        f"dataset {source!r} not found (looked at {', '.join(str(c) for c in candidates)}); give a path to a "
+        "neutral-JSON layout file or an ATISS folder, or 'procedural'")
+
+
+# --- data ---------------------------------------------------------------------------------------------
+@dataclass
+class SceneTensors:
+    """A dataset as metric tensors in the scene frame (floors centred), ready for augmentation."""
+
+    labels: torch.Tensor  # (S, N)
+    translations: torch.Tensor  # (S, N, 3)
+    half_sizes: torch.Tensor  # (S, N, 3)
+    yaws: torch.Tensor  # (S, N)
+    floor_points: torch.Tensor  # (S, P, 4): x, z, nx, nz in metres
+
+    @classmethod
+    def from_layouts(cls, layouts: Sequence[Layout], num_slots: int, num_points: int = 256) -> "SceneTensors":
+        b = SceneBatch.from_layouts(layouts, num_slots=num_slots)
+        pts = torch.tensor(np.stack([f.boundary_points(num_points) for f in b.floors]), dtype=torch.float32)
+        return cls(b.labels, b.translations, b.half_sizes, b.yaws, pts)
+
+    def __len__(self) -> int:
+        return self.labels.shape[0]
+
+    def batch(self, idx: torch.Tensor, generator: torch.Generator | None = None, rotate: bool = False,
+              permute: bool = False):
+        """Metric tensors of scenes ``idx``, optionally rotated by random multiples of 90 degrees about +y
+        and with shuffled slots. Returns (labels, translations, half_sizes, yaws, floor_points)."""
+        labels, trans = self.labels[idx], self.translations[idx].clone()
+        half, yaws, pts = self.half_sizes[idx], self.yaws[idx].clone(), self.floor_points[idx].clone()
+        b, n = labels.shape
+        if rotate:
+            k = torch.randint(0, 4, (b,), generator=generator)
+            ang = k.float() * (math.pi / 2)
+            c, s = torch.cos(ang).round(), torch.sin(ang).round()  # exact for multiples of 90 degrees
+            trans[..., [0, 2]] = rotate_xz_tensor(trans[..., [0, 2]], c[:, None], s[:, None])
+            pts[..., 0:2] = rotate_xz_tensor(pts[..., 0:2], c[:, None], s[:, None])
+            pts[..., 2:4] = rotate_xz_tensor(pts[..., 2:4], c[:, None], s[:, None])
+            yaws = yaws + ang[:, None]
+            yaws = (yaws + math.pi) % (2 * math.pi) - math.pi
+        if permute:
+            perm = torch.rand(b, n, generator=generator).argsort(1)
+            labels = labels.gather(1, perm)
+            trans = trans.gather(1, perm[..., None].expand(-1, -1, 3))
+            half = half.gather(1, perm[..., None].expand(-1, -1, 3))
+            yaws = yaws.gather(1, perm)
+        return labels, trans, half, yaws, pts
+
+
+def rotate_xz_tensor(p: torch.Tensor, c: torch.Tensor, s: torch.Tensor) -> torch.Tensor:
+    """(x, z) -> (c x + s z, -s x + c z): the R_y of :func:`iarcs_env.floorplan.rotate_xz`."""
+    x, z = p[..., 0], p[..., 1]
+    return torch.stack([c * x + s * z, -s * x + c * z], -1)
+
+
+def scale_floor_points(pts: torch.Tensor, stats: DatasetStats) -> torch.Tensor:
+    """Metric boundary points (B, P, 4) -> model floor features, as :func:`iarcs_env.scene.floor_features`."""
+    lo, hi = stats.translation_bounds(pts)
+    xz = 2 * (pts[..., :2] - lo[[0, 2]]) / (hi[[0, 2]] - lo[[0, 2]]) - 1
+    return torch.cat([xz, pts[..., 2:]], -1)
+
+
+def encode_batch(spec, stats: DatasetStats, labels, trans, half, yaws, pts):
+    """(x0 features (B, N, 8+K), floor features (B, P, 4))."""
+    x0 = SceneBatch(spec, labels, trans, half, yaws, floors=[]).encode(stats)
+    return x0, scale_floor_points(pts, stats)
+
+
+def stats_for_training(layouts: Sequence[Layout], room: str, rotation_augment: bool) -> DatasetStats:
+    """Dataset statistics; with rotation augmentation the translation bounds cover all four rotations."""
+    stats = DatasetStats.from_layouts(layouts, room)
+    if rotation_augment:
+        rotated = [lay.centred().rotated(k * math.pi / 2) for lay in layouts for k in (1, 2, 3)]
+        wide = DatasetStats.from_layouts(list(layouts) + rotated, room)
+        stats.bounds_translations = wide.bounds_translations
+    return stats
+
+
+def load_training_layouts(cfg: PretrainConfig, log: Callable[[str], None] = print) -> list[Layout]:
+    """The dataset of ``cfg``, without rooms that have more objects than the room type has slots."""
+    from iarcs_env.datasets import load_layouts
+
+    spec = get_room(cfg.room)
+    source = resolve_dataset(cfg.dataset)
+    layouts = load_layouts(source, spec.name, num_scenes=cfg.num_scenes, seed=cfg.data_seed)
+    layouts = [l for l in layouts if get_room(l.room_type).name == spec.name]
+    kept = [l for l in layouts if len(l) <= spec.max_objects]
+    if len(kept) < len(layouts):
+        log(f"dropped {len(layouts) - len(kept)} of {len(layouts)} rooms with more than {spec.max_objects} objects")
+    if not kept:
+        raise ValueError(f"{cfg.dataset}: no {spec.name} rooms with at most {spec.max_objects} objects")
+    return kept
+
+
+# --- training ------------------------------------------------------------------------------------------
+@dataclass
+class TrainResult:
+    """What :func:`train` returns."""
+
+    step: int
+    """Global step reached (over all sessions of the run)."""
+    losses: list = field(default_factory=list)
+    """(step, training loss) of every step of this session."""
+    val_losses: list = field(default_factory=list)
+    """(step, validation loss of the EMA weights)."""
+    resumed_from: int = 0
+    """Step the session resumed from (0: a fresh run)."""
+    out: Path | None = None
+    prior_path: Path | None = None
+    seconds: float = 0.0
+
+
+def lr_at(step: int, cfg: PretrainConfig) -> float:
+    """Linear warm-up then cosine decay to ``lr * min_lr_ratio``."""
+    if cfg.warmup_steps > 0 and step < cfg.warmup_steps:
+        return cfg.lr * (step + 1) / cfg.warmup_steps
+    span = max(cfg.steps - cfg.warmup_steps, 1)
+    frac = min(max(step - cfg.warmup_steps, 0) / span, 1.0)
+    return cfg.lr * (cfg.min_lr_ratio + (1 - cfg.min_lr_ratio) * 0.5 * (1 + math.cos(math.pi * frac)))
+
+
+def _check_resumable(saved: dict, cfg: PretrainConfig, path: Path) -> None:
+    for key in ("room", "preset", "model", "dataset", "num_scenes", "data_seed"):
+        if saved.get(key) != asdict(cfg)[key]:
+            raise ValueError(
+                f"{path} was trained with {key}={saved.get(key)!r} but the config says {asdict(cfg)[key]!r}; "
+                "use another output folder (--out) to start a new run, or restore the setting to resume")
+
+
+def train(cfg: PretrainConfig, layouts: Sequence[Layout] | None = None, max_steps: int | None = None,
+          progress: bool = True, log: Callable[[str], None] = print, resume: bool = True) -> TrainResult:
+    """Train (or resume) the prior of ``cfg``; stops at ``cfg.steps`` or, earlier, at ``max_steps``
+    (the global step to stop at, as if the run were interrupted there). ``layouts`` overrides the
+    dataset of the config (tests pass hand-made rooms)."""
+    from tqdm import tqdm
+
+    t_start = time.perf_counter()
+    if cfg.num_threads > 0:
+        torch.set_num_threads(cfg.num_threads)
+    spec = get_room(cfg.room)
+    out = Path(cfg.out)
+    out.mkdir(parents=True, exist_ok=True)
+    state_path = out / STATE_FILE
+    saved = None
+    if resume and state_path.exists():
+        saved = torch.load(state_path, map_location="cpu", weights_only=True)
+        _check_resumable(saved["config"], cfg, state_path)
+
+    # data
+    if layouts is None:
+        layouts = load_training_layouts(cfg, log)
+    layouts = [l for l in layouts if len(l) <= spec.max_objects]
+    order = np.random.default_rng(cfg.data_seed).permutation(len(layouts))
+    n_val = min(cfg.val_scenes, len(layouts) // 10)
+    val_layouts = [layouts[i] for i in order[:n_val]]
+    train_layouts = [layouts[i] for i in order[n_val:]]
+    if saved is not None:
+        stats = DatasetStats.from_json(saved["stats"], spec.name)
+    else:
+        stats = stats_for_training(train_layouts, spec.name, cfg.rotation_augment)
+        stats.save(out / "dataset_stats.json")
+        _write_yaml(out / "config.yaml", asdict(cfg))
+    data = SceneTensors.from_layouts(train_layouts, spec.max_objects)
+    val = SceneTensors.from_layouts(val_layouts, spec.max_objects) if val_layouts else None
+
+    # model, EMA, optimizer, randomness
+    torch.manual_seed(cfg.seed)
+    net = SceneDenoiser(cfg.denoiser_config(), spec.feature_dim)
+    ema = copy.deepcopy(net).eval().requires_grad_(False)
+    opt = torch.optim.AdamW(net.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
+    gen = torch.Generator().manual_seed(cfg.seed + 1)
+    schedule = NoiseSchedule()
+    step = 0
+    if saved is not None:
+        net.load_state_dict(saved["model"])
+        ema.load_state_dict(saved["ema"])
+        opt.load_state_dict(saved["optimizer"])
+        step = int(saved["step"])
+        gen.set_state(saved["rng"]["generator"])
+        torch.set_rng_state(saved["rng"]["torch"])
+        log(f"resumed {state_path} at step {step}")
+    result = TrainResult(step=step, resumed_from=step, out=out)
+    stop = min(cfg.steps, max_steps) if max_steps is not None else cfg.steps
+
+    writer = None
+    if cfg.tensorboard:
+        from torch.utils.tensorboard import SummaryWriter
+
+        writer = SummaryWriter(str(out / "tb"), purge_step=step if step else None)
+    metrics = (out / "metrics.jsonl").open("a")
+
+    def save_checkpoint():
+        state = {"step": step, "model": net.state_dict(), "ema": ema.state_dict(), "optimizer": opt.state_dict(),
+                 "rng": {"generator": gen.get_state(), "torch": torch.get_rng_state()},
+                 "config": asdict(cfg), "stats": stats.to_json()}
+        atomic_torch_save(state, state_path)
+        prior = ScenePrior(copy.deepcopy(ema), stats, NoiseSchedule(),
+                           meta={"step": step, "preset": cfg.preset, "dataset": cfg.dataset, "room": spec.name})
+        result.prior_path = prior.save(out / PRIOR_FILE)
+
+    def validate() -> float | None:
+        if val is None:
+            return None
+        g = torch.Generator().manual_seed(1234)  # the same t and noise every time
+        losses = []
+        with torch.no_grad():
+            for i in range(0, len(val), 256):
+                idx = torch.arange(i, min(i + 256, len(val)))
+                x0, floor = encode_batch(spec, stats, *val.batch(idx))
+                losses.append(schedule.training_loss(lambda x, t: ema(x, t, floor), x0, g, reduction="none"))
+        return float(torch.cat(losses).mean())
+
+    bar = tqdm(total=stop, initial=step, disable=not progress, desc=f"pretrain {spec.name}", dynamic_ncols=True)
+    running = None
+    net.train()
+    try:
+        while step < stop:
+            idx = torch.randint(0, len(data), (cfg.batch_size,), generator=gen)
+            batch = data.batch(idx, gen, rotate=cfg.rotation_augment, permute=cfg.permutation_augment)
+            x0, floor = encode_batch(spec, stats, *batch)
+            if cfg.cond_drop_prob > 0:
+                keep = (torch.rand(x0.shape[0], generator=gen) >= cfg.cond_drop_prob).float()
+                floor = floor * keep[:, None, None]
+            lr = lr_at(step, cfg)
+            for group in opt.param_groups:
+                group["lr"] = lr
+            loss = schedule.training_loss(lambda x, t: net(x, t, floor), x0, gen)
+            opt.zero_grad(set_to_none=True)
+            loss.backward()
+            grad_norm = torch.nn.utils.clip_grad_norm_(net.parameters(), cfg.grad_clip if cfg.grad_clip > 0 else
+                                                       float("inf"))
+            opt.step()
+            decay = min(cfg.ema_decay, (1 + step) / (10 + step))
+            with torch.no_grad():
+                for pe, p in zip(ema.parameters(), net.parameters()):
+                    pe.lerp_(p, 1 - decay)
+            step += 1
+            value = loss.item()
+            result.losses.append((step, value))
+            running = value if running is None else 0.98 * running + 0.02 * value
+            bar.update(1)
+            if step % cfg.log_every == 0 or step == stop:
+                bar.set_postfix(loss=f"{running:.4f}", lr=f"{lr:.2e}")
+                record = {"step": step, "loss": value, "loss_avg": running, "lr": lr, "grad_norm": float(grad_norm)}
+                if writer is not None:
+                    writer.add_scalar("train/loss", value, step)
+                    writer.add_scalar("train/loss_avg", running, step)
+                    writer.add_scalar("train/lr", lr, step)
+                    writer.add_scalar("train/grad_norm", float(grad_norm), step)
+                if step % cfg.eval_every == 0 or step == stop:
+                    v = validate()
+                    if v is not None:
+                        result.val_losses.append((step, v))
+                        record["val_loss_ema"] = v
+                        if writer is not None:
+                            writer.add_scalar("val/loss_ema", v, step)
+                metrics.write(json.dumps(record) + "\n")
+                metrics.flush()
+            if step % cfg.checkpoint_every == 0 or step == stop:
+                save_checkpoint()
+    finally:
+        bar.close()
+        metrics.close()
+        if writer is not None:
+            writer.close()
+    result.step = step
+    result.seconds = time.perf_counter() - t_start
+    return result
+
+
+def export_prior(state_path: str | Path, dest: str | Path, half: bool = False) -> Path:
+    """Write the EMA weights of a ``train_state.pt`` as a :class:`ScenePrior` checkpoint (``half``:
+    float16 weights, half the file size; they are loaded back as float32)."""
+    state = torch.load(state_path, map_location="cpu", weights_only=True)
+    cfg = config_from_dict(state["config"], str(state_path))
+    spec = get_room(cfg.room)
+    net = SceneDenoiser(cfg.denoiser_config(), spec.feature_dim)
+    net.load_state_dict(state["ema"])
+    prior = ScenePrior(net, DatasetStats.from_json(state["stats"], spec.name), NoiseSchedule(),
+                       meta={"step": int(state["step"]), "preset": cfg.preset, "dataset": cfg.dataset,
+                             "room": spec.name})
+    return prior.save(dest, half=half)
+
+
+def _write_yaml(path: Path, data: dict) -> None:
+    import yaml
+
+    path.write_text(yaml.safe_dump(data, sort_keys=False))
+
+
+__all__ = ["PretrainConfig", "SceneTensors", "TrainResult", "config_from_dict", "encode_batch", "export_prior",
+           "load_config", "load_training_layouts", "lr_at", "resolve_dataset", "scale_floor_points",
+           "stats_for_training", "train"]

@@ -1,0 +1,175 @@
+"""``iarcs evaluate``: the paper's metrics for a layout file, as JSON and as a Markdown table.
+
+    iarcs evaluate --scenes generated.json [--reference real.json] --out report.json \\
+        [--render-issues DIR] [--features cnn | clip:PATH | none]
+
+Writes ``report.json`` (``Col_obj``, ``Col_scene``, ``R_out``, ``R_reach``, ``R_walkable`` as fractions in
+[0, 1], counts, and with ``--reference`` the class-frequency KL, the object-count distance and FID / KID /
+SCA on top-down renders, naming the feature extractor) and ``report.md`` next to it (a table in the style
+of the paper's Table 2). ``--render-issues DIR`` writes a PNG per scene with a problem: colliding objects
+outlined red, out-of-bound objects magenta, unreachable free floor hatched orange.
+"""
+
+from __future__ import annotations
+
+import json
+import re
+import sys
+from pathlib import Path
+
+HEADLINE_HELP = "Col_obj, Col_scene, R_out, R_reach, R_walkable"
+
+
+def register(sub) -> None:
+    p = sub.add_parser("evaluate", help=f"metrics of a layout file ({HEADLINE_HELP}, FID/KID/SCA)",
+                       description=__doc__.split("\n\n")[0])
+    p.add_argument("--scenes", required=True, help="layouts to evaluate: neutral .json or an ATISS folder")
+    p.add_argument("--reference", help="real layouts (.json or ATISS folder) for KL, count distance, FID, KID, SCA")
+    p.add_argument("--out", required=True, help="report .json (a .md table is written next to it)")
+    p.add_argument("--render-issues", metavar="DIR", help="write a marked render of each scene with an issue")
+    p.add_argument("--max-renders", type=int, default=100, help="at most this many issue renders (default 100)")
+    p.add_argument("--features", default="cnn",
+                   help="feature extractor for FID/KID with --reference: 'cnn' (the project's CNN trained on "
+                        "the reference renders; default), 'clip:PATH' (a local CLIP checkpoint) or 'none'")
+    p.add_argument("--room", help="evaluate only this room type (when the file mixes several)")
+    p.add_argument("--name", help="row name in the Markdown table (default: the scenes file name)")
+    p.add_argument("--cell", type=float, default=0.05, help="walkable grid cell in metres (default 0.05)")
+    p.add_argument("--agent-radius", type=float, default=0.3, help="agent radius in metres (default 0.3)")
+    p.add_argument("--render-size", type=int, default=64, help="render size for FID/KID/SCA (default 64)")
+    p.add_argument("--seed", type=int, default=0, help="seed of the feature CNN and the SCA classifier")
+    p.set_defaults(func=cmd_evaluate)
+
+
+def _load(path: str, room: str | None, what: str):
+    from experiments.cli import CLIError
+    from iarcs_env.datasets import load_layouts
+    from iarcs_env.rooms import get_room
+
+    if not Path(path).exists():
+        raise CLIError(f"{what} file {path} does not exist")
+    layouts = load_layouts(path, room)
+    if room:
+        layouts = [lay for lay in layouts if get_room(lay.room_type).name == get_room(room).name]
+    if not layouts:
+        raise CLIError(f"{what} file {path} holds no {room + ' ' if room else ''}scenes")
+    kinds = sorted({get_room(lay.room_type).name for lay in layouts})
+    if len(kinds) > 1:
+        raise CLIError(f"{what} file {path} mixes room types ({', '.join(kinds)}); choose one with --room")
+    return layouts
+
+
+def cmd_evaluate(args) -> int:
+    from experiments.cli import CLIError
+    from iarcs_env.metrics import evaluate_layouts
+
+    if args.cell <= 0 or args.agent_radius < 0:
+        raise CLIError("--cell must be positive and --agent-radius not negative")
+    features = None if args.features in ("none", "", None) else args.features
+    if features and features != "cnn" and not features.startswith("clip:"):
+        raise CLIError(f"--features must be 'cnn', 'clip:PATH' or 'none', not {args.features!r}")
+    layouts = _load(args.scenes, args.room, "--scenes")
+    reference = _load(args.reference, args.room or layouts[0].room_type, "--reference") if args.reference else None
+    out = Path(args.out)
+    if out.suffix.lower() != ".json":
+        raise CLIError(f"--out must name a .json file, got {out}")
+
+    result = evaluate_layouts(layouts, reference=reference, cell=args.cell, agent_radius=args.agent_radius,
+                              keep_scenes=True, keep_masks=bool(args.render_issues), progress=True,
+                              features=features if reference is not None else None,
+                              distribution_kwargs={"size": args.render_size, "seed": args.seed})
+    scenes = result.pop("scenes")
+    if reference is None:
+        result["feature_extractor"] = "none (no --reference: no FID/KID/SCA)"
+    elif not features:
+        result["feature_extractor"] = "none (--features none)"
+    result["scenes_file"] = str(args.scenes)
+    result["reference_file"] = str(args.reference) if args.reference else None
+    result["command"] = "iarcs " + " ".join(_quote(a) for a in sys.argv[1:]) if _is_cli() else None
+    result["per_scene"] = [
+        {"id": s.id, "objects": s.n_objects, "colliding": s.colliding, "out_of_bound": s.out_of_bound,
+         "unreachable_objects": s.unreachable_objects, "R_walkable": round(s.walkable, 6),
+         "penetration_m3": round(s.penetration, 6), "out_area_m2": round(s.out_area, 6)}
+        for s in scenes]
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(json.dumps(result, indent=1))
+    md = out.with_suffix(".md")
+    md.write_text(markdown_report(result, args.name or Path(args.scenes).stem))
+    print(markdown_table(result, args.name or Path(args.scenes).stem))
+    print(f"\nfeature extractor: {result['feature_extractor']}")
+    print(f"report: {out}\ntable: {md}")
+    if args.render_issues:
+        n = render_issues(layouts, scenes, Path(args.render_issues), args.max_renders)
+        print(f"issue renders: {n} in {args.render_issues}")
+    return 0
+
+
+def _is_cli() -> bool:
+    return Path(sys.argv[0]).name in ("iarcs", "cli.py") or sys.argv[0].endswith("experiments.cli")
+
+
+def _quote(arg: str) -> str:
+    return arg if re.fullmatch(r"[\w./:=+-]+", arg) else "'" + arg.replace("'", "'\\''") + "'"
+
+
+def _pct(v) -> str:
+    return "–" if v is None else f"{100 * v:.2f}"
+
+
+def markdown_table(result: dict, name: str) -> str:
+    """One-row table in the style of the paper's Table 2 (percentages for the fractions)."""
+    cols = [("FID ↓", lambda r: f"{r['FID']:.2f}" if "FID" in r else "–"),
+            ("KID×0.001 ↓", lambda r: f"{r['KID'] * 1000:.2f}" if "KID" in r else "–"),
+            ("SCA % (50 best)", lambda r: f"{100 * r['SCA']:.1f}" if "SCA" in r else "–"),
+            ("KL_class ↓", lambda r: f"{r['KL_class']:.4f}" if "KL_class" in r else "–"),
+            ("Col_obj % ↓", lambda r: _pct(r["Col_obj"])),
+            ("Col_scene % ↓", lambda r: _pct(r["Col_scene"])),
+            ("R_out % ↓", lambda r: _pct(r["R_out"])),
+            ("R_reach % ↑", lambda r: _pct(r["R_reach"])),
+            ("R_walkable ↑", lambda r: f"{r['R_walkable']:.3f}")]
+    head = "| Method | " + " | ".join(c for c, _ in cols) + " |"
+    rule = "|---|" + "---|" * len(cols)
+    row = f"| {name} | " + " | ".join(f(result) for _, f in cols) + " |"
+    return "\n".join([head, rule, row])
+
+
+def markdown_report(result: dict, name: str) -> str:
+    lines = [f"# Evaluation: {name}", "", markdown_table(result, name), "",
+             f"- scenes: {result['n_scenes']} {result['room_type']}s from `{result.get('scenes_file')}`, "
+             f"{result['n_objects']} objects ({result['n_ground_objects']} ground objects), "
+             f"{result['mean_objects']:.2f} per scene"]
+    if result.get("reference_file"):
+        lines.append(f"- reference: {result['n_reference_scenes']} scenes from `{result['reference_file']}` "
+                     f"({result['reference_mean_objects']:.2f} objects per scene); object-count distance "
+                     f"(earth mover's) {result['count_distance']:.3f}")
+    lines.append(f"- feature extractor: {result['feature_extractor']}")
+    if "render_size" in result:
+        lines.append(f"- renders for FID/KID/SCA: {result['render_size']} px, fixed view of "
+                     f"±{result['render_extent']} m")
+    lines.append(f"- walkable grid: {result['cell']} m cells, agent radius {result['agent_radius']} m")
+    if result.get("command"):
+        lines.append(f"- command: `{result['command']}`")
+    lines += ["", "Definitions (DESIGN.md): ground objects exclude ceiling and pendant lamps; a collision is a 3D "
+              "box overlap > 1e-6 m³ between ground objects; an object is out of bound when its footprint, shrunk "
+              "by 0.05 m per side, has > 1e-5 m² outside the floor; R_walkable = largest 4-connected free region "
+              "/ free cells; R_reach = ground objects whose inflated footprint touches that region.", ""]
+    return "\n".join(lines)
+
+
+def render_issues(layouts, scenes, folder: Path, limit: int) -> int:
+    """PNG renders of the scenes with issues, marked with :class:`iarcs_env.render.Overlays`."""
+    from tqdm import tqdm
+
+    from iarcs_env.render import render_layout, save_image
+
+    folder.mkdir(parents=True, exist_ok=True)
+    todo = [(i, s) for i, s in enumerate(scenes) if s.has_issue or (s.unreachable is not None and s.unreachable[0].any())]
+    todo = todo[:limit]
+    for i, s in tqdm(todo, desc="render issues", unit="scene"):
+        lay = layouts[i].centred()
+        unreachable = ",".join(lay.labels[k] for k in s.unreachable_objects)
+        title = (f"{len(s.colliding)} colliding (red), {len(s.out_of_bound)} out (magenta), walkable {s.walkable:.2f}"
+                 + (f"; unreachable: {unreachable}" if unreachable else ""))
+        img = render_layout(lay, size=320, overlays=s.overlays(), legend=True, title=title[:75])
+        safe = re.sub(r"[^\w.-]+", "_", s.id)[:60] or f"scene_{i:05d}"
+        save_image(img, folder / f"{i:05d}_{safe}.png")
+    return len(todo)

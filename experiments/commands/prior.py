@@ -1,0 +1,120 @@
+"""``iarcs pretrain`` (train a scene prior from a YAML config) and ``iarcs sample`` (scenes from a prior)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+
+def register(sub) -> None:
+    p = sub.add_parser("pretrain", help="pretrain a floor-conditioned scene prior (resumes an interrupted run)")
+    p.add_argument("--config", required=True, help="YAML config, e.g. experiments/pretrain_bedroom.yaml")
+    p.add_argument("--out", default=None, help="run folder (default: the config's 'out')")
+    p.add_argument("--steps", type=int, default=None, help="total optimizer steps (default: the config's)")
+    p.add_argument("--no-resume", action="store_true",
+                   help="refuse to continue an existing run in the output folder (default: resume it)")
+    p.set_defaults(func=cmd_pretrain)
+
+    p = sub.add_parser("sample", help="sample scenes from a scene prior as neutral JSON layouts")
+    p.add_argument("--room", default="bedroom", help="bedroom, livingroom or diningroom (default bedroom)")
+    p.add_argument("--num-scenes", type=int, default=None,
+                   help="scenes to sample (default 16, or one per room of --floors)")
+    p.add_argument("--seed", type=int, default=0, help="seed of the floor plans and of the sampler")
+    p.add_argument("--out", required=True, help="output .json file (or a folder for ATISS format)")
+    p.add_argument("--checkpoint", default=None,
+                   help="prior.pt of a pretraining run (default: the prior shipped for --room)")
+    p.add_argument("--floors", default=None,
+                   help="layout file whose floor plans to use, room for room (default: procedural floors)")
+    p.add_argument("--steps", type=int, default=20, help="DDIM steps (default 20)")
+    p.add_argument("--eta", type=float, default=1.0, help="DDIM eta: 0 deterministic, 1 DDPM-like (default 1)")
+    p.add_argument("--guidance", type=float, default=1.0, help="classifier-free guidance scale (default 1: none)")
+    p.add_argument("--batch-size", type=int, default=256, help="scenes per sampling batch (default 256)")
+    p.set_defaults(func=cmd_sample)
+
+
+def cmd_pretrain(args) -> int:
+    from experiments.cli import CLIError
+    from agents.pretrain import PRIOR_FILE, STATE_FILE, load_config, train
+
+    if args.steps is not None and args.steps <= 0:
+        raise CLIError(f"--steps must be a positive number, got {args.steps}")
+    cfg = load_config(args.config, out=args.out, steps=args.steps)
+    out = Path(cfg.out)
+    if args.no_resume and (out / STATE_FILE).exists():
+        raise CLIError(f"{out} already holds a run ({STATE_FILE}); drop --no-resume to continue it, or choose "
+                       "another --out")
+    result = train(cfg, resume=not args.no_resume)
+    last = result.losses[-1][1] if result.losses else float("nan")
+    print(f"step {result.step}/{cfg.steps} in {result.seconds:.0f} s; last training loss {last:.4f}"
+          + (f"; EMA validation loss {result.val_losses[-1][1]:.4f}" if result.val_losses else ""))
+    print(f"prior: {out / PRIOR_FILE}\ntraining state (resumable): {out / STATE_FILE}")
+    return 0
+
+
+def cmd_sample(args) -> int:
+    import numpy as np
+    import torch
+    from dataclasses import replace
+
+    from experiments.cli import CLIError
+    from agents.denoiser import ScenePrior
+    from iarcs_env.datasets import load_layouts, save_layouts
+    from iarcs_env.rooms import get_room
+
+    try:
+        spec = get_room(args.room)
+    except ValueError as err:
+        raise CLIError(str(err)) from None
+    for name, value in (("--num-scenes", args.num_scenes), ("--steps", args.steps), ("--batch-size", args.batch_size)):
+        if value is not None and value <= 0:
+            raise CLIError(f"{name} must be a positive number, got {value}")
+    if args.steps > 1000:
+        raise CLIError(f"--steps must be at most 1000 (the training timesteps), got {args.steps}")
+    if args.eta < 0:
+        raise CLIError(f"--eta must be >= 0, got {args.eta}")
+
+    if args.checkpoint:
+        prior = ScenePrior.load(args.checkpoint)
+    else:
+        try:
+            prior = ScenePrior.load_default(spec.name)
+        except FileNotFoundError as err:
+            raise CLIError(str(err)) from None
+    if prior.spec.name != spec.name:
+        raise CLIError(f"{args.checkpoint or 'the prior'} is a {prior.spec.name} prior but --room is {spec.name}; "
+                       f"pass --room {prior.spec.name} or a {spec.name} checkpoint")
+
+    if args.floors:
+        rooms = load_layouts(args.floors, spec.name)
+        if not rooms:
+            raise CLIError(f"{args.floors} holds no {spec.name} rooms")
+        n = args.num_scenes or len(rooms)
+        if n > len(rooms):
+            raise CLIError(f"--num-scenes {n} asks for more scenes than {args.floors} has rooms ({len(rooms)}); "
+                           f"pass --num-scenes {len(rooms)} or fewer")
+        sources = rooms[:n]
+    else:
+        from iarcs_env.datasets.procedural import generate_layouts
+
+        n = args.num_scenes or 16
+        sources = generate_layouts(spec.name, n, seed=args.seed)
+    floors = [r.floor for r in sources]
+    ids = [f"{r.id or spec.name}:sample" if args.floors else f"{spec.name}_s{args.seed}_{i:05d}"
+           for i, r in enumerate(sources)]
+    gen = torch.Generator().manual_seed(args.seed)
+    batch = prior.sample(floors, num_steps=args.steps, eta=args.eta, generator=gen, guidance_scale=args.guidance,
+                         batch_size=args.batch_size, ids=ids)
+    layouts = []
+    for lay, src in zip(batch.to_layouts(), sources):
+        # back to the floor plan's own frame (the prior works centred on the floor's bounding box)
+        c = src.floor.centre
+        t = lay.translations.copy()
+        t[:, 0] += c[0]
+        t[:, 2] += c[1]
+        layouts.append(replace(lay, floor=src.floor, translations=t, ceiling_height=src.ceiling_height))
+    meta = {"source": "iarcs sample", "room_type": spec.name, "checkpoint": str(args.checkpoint or
+            ScenePrior.default_path(spec.name).name), "seed": args.seed, "ddim_steps": args.steps,
+            "eta": args.eta, "guidance": args.guidance, "floors": args.floors or "procedural"}
+    path = save_layouts(layouts, args.out, **meta)
+    counts = np.array([len(l) for l in layouts])
+    print(f"{len(layouts)} {spec.name} scenes ({counts.mean():.1f} objects on average) -> {path}")
+    return 0

@@ -1,0 +1,636 @@
+"""Batched scene geometry shared by the evaluation metrics and the universal rewards.
+
+Everything here works on whole batches at once: no Python loop over object pairs and no shapely object
+per box (a per-pair shapely loop is only the tests' reference).
+
+* :func:`convex_overlap_area` — exact intersection area of many pairs of convex polygons at once: the
+  intersection of two convex polygons is the convex hull of (vertices of one inside the other) and (edge
+  crossings), so we collect those candidate points with validity masks, sort them by angle about their
+  mean and apply the shoelace formula. Torch, any device.
+* :func:`box_overlap_volumes` — pairwise overlap volume of oriented 3D boxes (yaw about +y): footprint
+  intersection area times vertical overlap, evaluated only on the pairs whose bounding circles and
+  height intervals meet.
+* :func:`out_of_floor_area` — area of each footprint outside a (possibly non-convex) floor polygon:
+  ``area(footprint) - sum_t area(footprint ∩ triangle_t)`` over a triangulation of the floor. Exact.
+* :func:`free_space` — the walkable occupancy grid of a batch: cell centres inside the floor at least
+  ``radius`` from its boundary and at least ``radius`` from every given footprint (the footprint inflated
+  by a disk of that radius). The floors and the inflated footprints are convex pieces, so every grid row
+  meets each of them in one interval; we compute the intervals analytically for all (row, piece) pairs at
+  once and paint them with a difference array and a cumulative sum. The scenes' grids are packed into one
+  2D atlas (one-cell gaps between them), so connected components (``scipy.ndimage.label``), the one-cell
+  dilation and the distance transform are one C call per batch.
+
+Conventions: y is up, footprints live in the x-z plane, ``R_y = [[c, 0, s], [0, 1, 0], [-s, 0, c]]``, so a
+local footprint corner (lx, lz) lands at ``(x + c*lx + s*lz, z - s*lx + c*lz)`` (see ``scene.box_corners_xz``).
+Grid cell ``(i, j)`` of a scene has its centre at ``(xmin + (j + 0.5) * cell, zmin + (i + 0.5) * cell)``,
+with (xmin, zmin) the floor's bounding-box corner.
+"""
+
+from __future__ import annotations
+
+from contextlib import contextmanager
+from dataclasses import dataclass
+from typing import Sequence
+
+import numpy as np
+import shapely
+import torch
+from scipy import ndimage
+
+from .floorplan import FloorPlan
+from .scene import box_corners_xz
+
+#: Collision threshold of the metrics (m^3): two ground objects collide when their boxes overlap more.
+COLLISION_VOLUME = 1e-6
+#: Out-of-bound threshold of the metrics (m^2) and the per-side shrink applied first (m).
+OUT_OF_BOUND_AREA = 1e-5
+OUT_OF_BOUND_SHRINK = 0.05
+#: Walkable grid defaults: cell size and agent radius (m).
+WALK_CELL = 0.05
+AGENT_RADIUS = 0.3
+
+_BIG = 1e9
+
+
+@contextmanager
+def single_thread():
+    """Run torch's CPU ops single-threaded for a while (restored afterwards). The tensors here are small
+    (thousands of pairs): intra-op threads bring nothing, and on a busy 2-core machine they spin against
+    other processes and run tens of times slower. Also usable as a decorator: ``@single_thread()``."""
+    before = torch.get_num_threads()
+    if before == 1:
+        yield
+        return
+    torch.set_num_threads(1)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(before)
+
+
+# ------------------------------------------------------------------------------------------------------
+# polygons (torch)
+# ------------------------------------------------------------------------------------------------------
+def _cross(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    return a[..., 0] * b[..., 1] - a[..., 1] * b[..., 0]
+
+
+def polygon_area(poly: torch.Tensor) -> torch.Tensor:
+    """Signed shoelace area of polygons ``(..., p, 2)`` (positive when counter-clockwise in (x, z))."""
+    nxt = poly.roll(-1, dims=-2)
+    return 0.5 * _cross(poly, nxt).sum(-1)
+
+
+def _ccw(poly: torch.Tensor) -> torch.Tensor:
+    flip = polygon_area(poly) < 0
+    if bool(flip.any()):
+        poly = torch.where(flip[..., None, None], poly.flip(-2), poly)
+    return poly
+
+
+@single_thread()
+def convex_overlap_area(P: torch.Tensor, Q: torch.Tensor, eps: float = 1e-9) -> torch.Tensor:
+    """Exact area of ``P ∩ Q`` for batches of convex polygons ``P (..., p, 2)`` and ``Q (..., q, 2)``.
+
+    Either winding is accepted; repeated vertices (padding) are fine; degenerate polygons (zero area)
+    give 0. The intersection is the convex hull of the vertices of each polygon lying in the other (within
+    ``eps`` metres) and of all edge-edge crossings: those candidates are sorted by (pseudo-)angle about
+    their mean and summed with the shoelace formula. Coordinates are taken relative to P's mean first.
+    """
+    P, Q = _broadcast_lead(P, Q)
+    P, Q = _ccw(P), _ccw(Q)
+    ox, oz = P[..., 0].mean(-1, keepdim=True), P[..., 1].mean(-1, keepdim=True)
+    px, pz = P[..., 0] - ox, P[..., 1] - oz
+    qx, qz = Q[..., 0] - ox, Q[..., 1] - oz
+    pdx, pdz = px.roll(-1, -1) - px, pz.roll(-1, -1) - pz
+    qdx, qdz = qx.roll(-1, -1) - qx, qz.roll(-1, -1) - qz
+    pl = torch.hypot(pdx, pdz)
+    ql = torch.hypot(qdx, qdz)
+    # r[i, j] = p_i - q_j
+    rx = px[..., :, None] - qx[..., None, :]
+    rz = pz[..., :, None] - qz[..., None, :]
+    # signed distances (> 0 inside): P's vertex i to Q's edge j, Q's vertex j to P's edge i
+    d_pq = (qdx[..., None, :] * rz - qdz[..., None, :] * rx) / ql.clamp_min(1e-300)[..., None, :]
+    d_qp = (pdz[..., :, None] * rx - pdx[..., :, None] * rz) / pl.clamp_min(1e-300)[..., :, None]
+    in_p = (d_pq >= -eps).all(-1)
+    in_q = (d_qp >= -eps).all(-2)
+    # crossings of P's edge i (p_i + t dp_i) with Q's edge j (q_j + u dq_j)
+    den = pdx[..., :, None] * qdz[..., None, :] - pdz[..., :, None] * qdx[..., None, :]
+    ok = den.abs() > 1e-12 * (pl[..., :, None] * ql[..., None, :])
+    den = torch.where(ok, den, torch.ones_like(den))
+    t = (rz * qdx[..., None, :] - rx * qdz[..., None, :]) / den
+    u = (rz * pdx[..., :, None] - rx * pdz[..., :, None]) / den
+    tol = 1e-12
+    ok = ok & (t >= -tol) & (t <= 1 + tol) & (u >= -tol) & (u <= 1 + tol)
+    lead = t.shape[:-2]
+    X = torch.cat([px, qx, (px[..., :, None] + t * pdx[..., :, None]).reshape(*lead, -1)], -1)
+    Z = torch.cat([pz, qz, (pz[..., :, None] + t * pdz[..., :, None]).reshape(*lead, -1)], -1)
+    valid = torch.cat([in_p, in_q, ok.reshape(*lead, -1)], -1)
+    w = valid.to(X.dtype)
+    count = w.sum(-1, keepdim=True)
+    X = X - (X * w).sum(-1, keepdim=True) / count.clamp_min(1)
+    Z = Z - (Z * w).sum(-1, keepdim=True) / count.clamp_min(1)
+    # pseudo-angle in [0, 4), monotone in the polar angle (no atan2)
+    ratio = X / (X.abs() + Z.abs()).clamp_min(1e-300)
+    ang = torch.where(Z >= 0, 1 - ratio, 3 + ratio).masked_fill(~valid, 10.0)
+    order = ang.argsort(-1)
+    X, Z, valid = X.gather(-1, order), Z.gather(-1, order), valid.gather(-1, order)
+    X = torch.where(valid, X, X[..., :1])  # pad with the first point: no area
+    Z = torch.where(valid, Z, Z[..., :1])
+    area = 0.5 * (X * Z.roll(-1, -1) - X.roll(-1, -1) * Z).sum(-1).abs()
+    degenerate = (polygon_area(P).abs() < 1e-14) | (polygon_area(Q).abs() < 1e-14)
+    return torch.where((count[..., 0] >= 3) & ~degenerate, area, torch.zeros_like(area))
+
+
+def _broadcast_lead(P: torch.Tensor, Q: torch.Tensor):
+    lead = torch.broadcast_shapes(P.shape[:-2], Q.shape[:-2])
+    return P.expand(*lead, *P.shape[-2:]), Q.expand(*lead, *Q.shape[-2:])
+
+
+# ------------------------------------------------------------------------------------------------------
+# boxes
+# ------------------------------------------------------------------------------------------------------
+@single_thread()
+def footprints(translations: torch.Tensor, half_sizes: torch.Tensor, yaws: torch.Tensor,
+               shrink: float = 0.0) -> torch.Tensor:
+    """Footprint corners ``(..., 4, 2)`` of boxes, each side moved in by ``shrink`` metres (clamped at 0)."""
+    half = half_sizes[..., [0, 2]]
+    if shrink:
+        half = (half - shrink).clamp_min(0.0)
+    return box_corners_xz(translations[..., [0, 2]], half, yaws)
+
+
+@single_thread()
+def box_overlap_volumes(translations: torch.Tensor, half_sizes: torch.Tensor, yaws: torch.Tensor,
+                        valid: torch.Tensor) -> torch.Tensor:
+    """Pairwise overlap volume (m^3) of oriented boxes: ``(B, N, N)``, symmetric, zero on the diagonal and
+    for pairs involving an invalid slot. Computed in float64 on the candidate pairs only (both valid,
+    bounding circles in x-z and height intervals overlapping, not separated along a box axis)."""
+    B, N = valid.shape
+    dev = translations.device
+    out = torch.zeros(B, N, N, dtype=torch.float64, device=dev)
+    if N < 2:
+        return out
+    i, j = torch.triu_indices(N, N, 1, device=dev)
+    b, k = (valid[:, i] & valid[:, j]).nonzero(as_tuple=True)
+    if len(b) == 0:
+        return out
+    i, j = i[k], j[k]
+    y = yaws.double()
+    # per slot: x, y, z, hx, hy, hz, cos, sin, bounding radius
+    h = half_sizes.double()
+    feats = torch.cat([translations.double(), h, torch.cos(y)[..., None], torch.sin(y)[..., None],
+                       torch.hypot(h[..., 0], h[..., 2])[..., None]], -1)
+    fi, fj = feats[b, i], feats[b, j]  # (K, 9)
+    gap2 = (fi[:, 0] - fj[:, 0]) ** 2 + (fi[:, 2] - fj[:, 2]) ** 2
+    reach = fi[:, 8] + fj[:, 8]
+    yov = (torch.minimum(fi[:, 1] + fi[:, 4], fj[:, 1] + fj[:, 4])
+           - torch.maximum(fi[:, 1] - fi[:, 4], fj[:, 1] - fj[:, 4])).clamp_min(0)
+    keep = (gap2 < reach * reach) & (yov > 0)
+    keep &= ~_separated(fi, fj)
+    keep = keep.nonzero(as_tuple=True)[0]
+    if len(keep) == 0:
+        return out
+    b, i, j, yov, fi, fj = b[keep], i[keep], j[keep], yov[keep], fi[keep], fj[keep]
+    vol = convex_overlap_area(_corners(fi), _corners(fj)) * yov
+    out[b, i, j] = vol
+    out[b, j, i] = vol
+    return out
+
+
+def _corners(f: torch.Tensor) -> torch.Tensor:
+    """Footprint corners (K, 4, 2) from packed features (x, y, z, hx, hy, hz, cos, sin, ...)."""
+    sx = f.new_tensor([-1.0, 1.0, 1.0, -1.0])
+    sz = f.new_tensor([-1.0, -1.0, 1.0, 1.0])
+    lx, lz = f[:, 3:4] * sx, f[:, 5:6] * sz
+    c, s = f[:, 6:7], f[:, 7:8]
+    return torch.stack([f[:, 0:1] + c * lx + s * lz, f[:, 2:3] - s * lx + c * lz], -1)
+
+
+def _separated(fi: torch.Tensor, fj: torch.Tensor) -> torch.Tensor:
+    """Separating-axis test of two footprints from packed features: strictly apart along one of the four
+    edge normals."""
+    c1, s1, c2, s2 = fi[:, 6], fi[:, 7], fj[:, 6], fj[:, 7]
+    dx, dz = fj[:, 0] - fi[:, 0], fj[:, 2] - fi[:, 2]
+    # axes: local x is (c, -s) in the world, local z is (s, c); cross terms between the two boxes
+    cc = (c1 * c2 + s1 * s2).abs()  # |u1.u2| = |v1.v2|
+    cs = (c1 * s2 - s1 * c2).abs()  # |u1.v2| = |v1.u2|
+    h1x, h1z, h2x, h2z = fi[:, 3], fi[:, 5], fj[:, 3], fj[:, 5]
+    d_u1, d_v1 = (c1 * dx - s1 * dz).abs(), (s1 * dx + c1 * dz).abs()
+    d_u2, d_v2 = (c2 * dx - s2 * dz).abs(), (s2 * dx + c2 * dz).abs()
+    tol = 1e-12
+
+    def apart(d, r):
+        return d > r * (1 + tol) + tol
+
+    return (apart(d_u1, h1x + h2x * cc + h2z * cs) | apart(d_v1, h1z + h2x * cs + h2z * cc)
+            | apart(d_u2, h2x + h1x * cc + h1z * cs) | apart(d_v2, h2z + h1x * cs + h1z * cc))
+
+
+# ------------------------------------------------------------------------------------------------------
+# floors
+# ------------------------------------------------------------------------------------------------------
+_PIECE_CACHE: dict[bytes, np.ndarray] = {}
+
+
+def _signed(poly: np.ndarray) -> float:
+    x, z = poly[:, 0], poly[:, 1]
+    return 0.5 * float(np.dot(x, np.roll(z, -1)) - np.dot(np.roll(x, -1), z))
+
+
+def _is_convex(poly: np.ndarray) -> bool:
+    e = np.roll(poly, -1, 0) - poly
+    turn = e[:, 0] * np.roll(e, -1, 0)[:, 1] - e[:, 1] * np.roll(e, -1, 0)[:, 0]
+    return bool(np.all(turn >= -1e-12))
+
+
+def floor_pieces(floor: FloorPlan) -> np.ndarray:
+    """Convex counter-clockwise pieces partitioning the floor polygon, ``(T, V, 2)`` (short pieces padded
+    by repeating their last vertex), cached per polygon. A convex floor is one piece; otherwise the
+    constrained Delaunay triangles are merged greedily while the union stays convex (Hertel-Mehlhorn)."""
+    key = floor.vertices.tobytes()
+    out = _PIECE_CACHE.get(key)
+    if out is not None:
+        return out
+    v = np.asarray(floor.vertices, dtype=np.float64)
+    if _signed(v) < 0:
+        v = v[::-1]
+    if _is_convex(v):
+        pieces = [v]
+    else:
+        parts = shapely.get_parts(shapely.constrained_delaunay_triangles(floor.polygon))
+        tris = shapely.get_coordinates(parts).reshape(len(parts), 4, 2)[:, :3]
+        pieces = []
+        for tri in tris:
+            a = _signed(tri)
+            if abs(a) > 1e-14:
+                pieces.append(tri if a > 0 else tri[::-1])
+        merged = True
+        while merged:
+            merged = False
+            for a in range(len(pieces)):
+                for b in range(a + 1, len(pieces)):
+                    m = _merge(pieces[a], pieces[b])
+                    if m is not None and _is_convex(m):
+                        pieces[a] = m
+                        del pieces[b]
+                        merged = True
+                        break
+                if merged:
+                    break
+    width = max(len(p) for p in pieces)
+    out = np.stack([np.concatenate([p, np.repeat(p[-1:], width - len(p), 0)]) for p in pieces])
+    if len(_PIECE_CACHE) > 20000:
+        _PIECE_CACHE.clear()
+    _PIECE_CACHE[key] = out
+    return out
+
+
+def _merge(p: np.ndarray, q: np.ndarray, tol: float = 1e-9):
+    """Union of two counter-clockwise polygons sharing one edge (p_i -> p_i+1 == q_j+1 -> q_j), or None."""
+    n, m = len(p), len(q)
+    for i in range(n):
+        a, b = p[i], p[(i + 1) % n]
+        for j in range(m):
+            if np.abs(q[j] - b).max() < tol and np.abs(q[(j + 1) % m] - a).max() < tol:
+                # walk p from b around to a, then q from a (q_j+1) around to b (q_j), excluding the shared ends
+                p_part = [p[(i + 1 + k) % n] for k in range(n)]  # b ... a
+                q_part = [q[(j + 2 + k) % m] for k in range(m - 2)]  # after a, before b
+                return np.array(p_part + q_part)
+    return None
+
+
+_BATCH_CACHE: dict = {}
+
+
+def _batch_pieces(floors: Sequence[FloorPlan], device) -> dict:
+    """All convex pieces of a batch's floors, flattened: ``pieces (P, V, 2)``, ``count (B,)`` and
+    ``first (B,)`` (index of each floor's first piece), ``ex``/``ez`` edge vectors; cached for the last
+    few batches of floor plans (in training the same floors come back)."""
+    keys = tuple(f.vertices.tobytes() for f in floors)
+    key = (hash(keys), str(device))
+    hit = _BATCH_CACHE.get(key)
+    if hit is not None and hit["keys"] == keys:
+        return hit
+    per = [floor_pieces(f) for f in floors]
+    V = max(p.shape[1] for p in per)
+    arr = np.concatenate([np.concatenate([p, np.repeat(p[:, -1:], V - p.shape[1], 1)], 1) for p in per])
+    count = np.array([len(p) for p in per])
+    # vertices per piece before the padding (repeated last vertices)
+    nv = np.concatenate([np.full(len(p), p.shape[1]) - (np.abs(np.diff(p, axis=1)).sum(-1) == 0).sum(1) for p in per])
+    pieces = torch.from_numpy(arr).to(device)
+    ex = pieces[..., 0].roll(-1, -1) - pieces[..., 0]
+    ez = pieces[..., 1].roll(-1, -1) - pieces[..., 1]
+    entry = {"keys": keys, "pieces": pieces, "ex": ex, "ez": ez, "nv": torch.from_numpy(nv).to(device),
+             "count": torch.from_numpy(count).to(device),
+             "first": torch.from_numpy(np.cumsum(count) - count).to(device),
+             "convex": bool((count == 1).all())}
+    if len(_BATCH_CACHE) >= 8:
+        _BATCH_CACHE.pop(next(iter(_BATCH_CACHE)))
+    _BATCH_CACHE[key] = entry
+    return entry
+
+
+@single_thread()
+def out_of_floor_area(corners: torch.Tensor, floors: Sequence[FloorPlan], valid: torch.Tensor) -> torch.Tensor:
+    """Area (m^2) of each footprint ``corners (B, N, 4, 2)`` lying outside its scene's floor polygon.
+
+    ``area(footprint) - sum over the floor's convex pieces of area(footprint ∩ piece)``, exact up to
+    rounding. A footprint whose four corners lie in one convex piece is inside (area 0 outside) without
+    clipping; only the others are clipped. ``(B, N)`` float64, 0 for invalid slots.
+    """
+    corners = corners.double()
+    B, N = valid.shape
+    dev = corners.device
+    result = torch.zeros(B, N, dtype=torch.float64, device=dev)
+    b, n = valid.nonzero(as_tuple=True)
+    if len(b) == 0:
+        return result
+    table = _batch_pieces(floors, dev)
+    fp = corners[b, n]  # (K, 4, 2)
+    K = len(b)
+    if table["convex"]:
+        obj = torch.arange(K, device=dev)
+        piece = table["first"][b]
+    else:
+        cnt = table["count"][b]
+        obj = torch.repeat_interleave(torch.arange(K, device=dev), cnt)
+        start = torch.cumsum(cnt, 0) - cnt
+        piece = table["first"][b][obj] + torch.arange(len(obj), device=dev) - start[obj]
+    q = table["pieces"][piece]  # (P, V, 2)
+    ex, ez = table["ex"][piece], table["ez"][piece]
+    fk = fp[obj]
+    rx = fk[..., 0][:, :, None] - q[..., 0][:, None, :]
+    rz = fk[..., 1][:, :, None] - q[..., 1][:, None, :]
+    contained = ((ex[:, None, :] * rz - ez[:, None, :] * rx) >= 0).flatten(1).all(-1)  # (P,)
+    whole = torch.zeros(K, dtype=torch.bool, device=dev)
+    whole[obj[contained]] = True
+    out_area = polygon_area(fp).abs()
+    exact = (~whole[obj]).nonzero(as_tuple=True)[0]
+    if len(exact):
+        fe, qe = fk[exact], q[exact]
+        if not table["convex"]:  # only the pieces that the footprint's bounding box meets
+            meet = ((fe.amin(1) <= qe.amax(1)) & (qe.amin(1) <= fe.amax(1))).all(-1)
+            exact, fe, qe = exact[meet], fe[meet], qe[meet]
+        width = int(table["nv"][piece[exact]].max()) if len(exact) else 0
+        inside = torch.zeros(K, dtype=torch.float64, device=dev)
+        if len(exact):
+            inside.index_add_(0, obj[exact], convex_overlap_area(fe, qe[:, :width]))
+        out_area = (out_area - inside).clamp_min(0.0)
+    result[b, n] = out_area.masked_fill(whole, 0.0)
+    return result
+
+
+# ------------------------------------------------------------------------------------------------------
+# walkable grids (NumPy + SciPy)
+# ------------------------------------------------------------------------------------------------------
+def _slab(alpha, beta, half):
+    """Interval of dx with ``|alpha * dx + beta| <= half`` (elementwise); empty gives lo > hi."""
+    nz = np.abs(alpha) > 1e-12
+    a_safe = np.where(nz, alpha, 1.0)
+    centre = -beta / a_safe
+    width = half / np.abs(a_safe)
+    inside = np.abs(beta) <= half
+    lo = np.where(nz, centre - width, np.where(inside, -_BIG, _BIG))
+    hi = np.where(nz, centre + width, np.where(inside, _BIG, -_BIG))
+    return lo, hi
+
+
+def _rect_row_interval(cx, cz, ux, uz, a, b, z):
+    """x-interval where the row ``z`` crosses the rectangle centred (cx, cz) with unit axis u = (ux, uz),
+    v = (-uz, ux) and half extents a (along u), b (along v)."""
+    dz = z - cz
+    lo1, hi1 = _slab(ux, uz * dz, a)
+    lo2, hi2 = _slab(-uz, ux * dz, b)
+    return cx + np.maximum(lo1, lo2), cx + np.minimum(hi1, hi2)
+
+
+def _disk_row_interval(px, pz, r, z):
+    d2 = r * r - (z - pz) ** 2
+    root = np.sqrt(np.clip(d2, 0, None))
+    ok = d2 > 0
+    return np.where(ok, px - root, _BIG), np.where(ok, px + root, -_BIG)
+
+
+def _union(intervals):
+    """Union of overlapping row intervals of convex pieces of one convex set: [min lo, max hi] over the
+    non-empty ones."""
+    lo = np.full_like(intervals[0][0], _BIG)
+    hi = np.full_like(intervals[0][0], -_BIG)
+    for a, b in intervals:
+        ok = a < b
+        lo = np.where(ok, np.minimum(lo, a), lo)
+        hi = np.where(ok, np.maximum(hi, b), hi)
+    return lo, hi
+
+
+def _ragged_rows(first, count):
+    """For items with row ranges [first, first + count): (item index, row) for every row, flattened."""
+    count = np.maximum(count, 0)
+    item = np.repeat(np.arange(len(first)), count)
+    starts = np.cumsum(count) - count
+    row = first[item] + (np.arange(int(count.sum())) - starts[item])
+    return item, row
+
+
+@dataclass
+class FreeSpace:
+    """The walkable grid of a batch and its connected components.
+
+    Per scene ``b``: ``free_cells[b]`` free cells, ``largest_cells[b]`` cells in the largest 4-connected free
+    component, ``regions[b]`` free components, ``floor_cells[b]`` cells of the empty room's free space
+    (floor eroded by the radius), ``reach[b, n]`` whether object n's inflated footprint touches (within one
+    cell, 8-neighbourhood) the largest component, ``clearance[b]`` mean distance (m) from a free cell to
+    the nearest blocked cell (``nan`` when not computed). Grids are packed in one atlas; use
+    :meth:`scene_grid` for one scene's masks.
+    """
+
+    cell: float
+    radius: float
+    origins: np.ndarray  # (B, 2) grid corner (xmin, zmin)
+    shapes: np.ndarray  # (B, 2) (H, W)
+    offsets: np.ndarray  # (B, 2) atlas (row, col) of cell (0, 0)
+    floor: np.ndarray  # atlas: floor eroded by the radius
+    free: np.ndarray  # atlas: free cells
+    labels: np.ndarray  # atlas: component labels (0 = not free)
+    largest_label: np.ndarray  # (B,) label of the largest component (0 when none)
+    floor_cells: np.ndarray
+    free_cells: np.ndarray
+    largest_cells: np.ndarray
+    regions: np.ndarray
+    reach: np.ndarray  # (B, N)
+    clearance: np.ndarray
+
+    @property
+    def walkable_ratio(self) -> np.ndarray:
+        """R_walkable per scene: largest component / free cells (0 when nothing is free)."""
+        return np.where(self.free_cells > 0, self.largest_cells / np.maximum(self.free_cells, 1), 0.0)
+
+    def scene_grid(self, b: int) -> dict:
+        """One scene's masks: ``free``, ``largest``, ``unreachable`` (free but not in the largest
+        component), ``floor`` (eroded), with ``xs``, ``zs`` cell-centre coordinates."""
+        (oy, ox), (h, w) = self.offsets[b], self.shapes[b]
+        sl = (slice(oy, oy + h), slice(ox, ox + w))
+        free = self.free[sl]
+        largest = (self.labels[sl] == self.largest_label[b]) & free & (self.largest_label[b] > 0)
+        x0, z0 = self.origins[b]
+        return {"free": free, "largest": largest, "unreachable": free & ~largest, "floor": self.floor[sl],
+                "xs": x0 + (np.arange(w) + 0.5) * self.cell, "zs": z0 + (np.arange(h) + 0.5) * self.cell}
+
+
+def _pack(shapes: np.ndarray, gap: int = 1) -> tuple[np.ndarray, tuple[int, int]]:
+    """Shelf-pack rectangles ``(H, W)`` into an atlas with ``gap`` empty cells between them."""
+    hs, ws = shapes[:, 0] + gap, shapes[:, 1] + gap
+    width = int(max(ws.max(), np.ceil(np.sqrt((hs * ws).sum()) * 1.15)))
+    offsets = np.zeros((len(shapes), 2), dtype=np.int64)
+    x = y = shelf = 0
+    for b in np.argsort(-hs, kind="stable"):
+        if x + ws[b] > width:
+            y, x, shelf = y + shelf, 0, 0
+        offsets[b] = (y, x)
+        x += ws[b]
+        shelf = max(shelf, hs[b])
+    return offsets, (int(y + shelf), width + 1)
+
+
+def free_space(floors: Sequence[FloorPlan], translations, half_sizes, yaws, valid, cell: float = WALK_CELL,
+               radius: float = AGENT_RADIUS, reach: bool = True, clearance: bool = False) -> FreeSpace:
+    """Walkable grid of a batch (see the module docstring). ``valid (B, N)`` selects the obstacles (the
+    ground objects); geometry may be torch tensors or arrays, in the floors' frame."""
+    t = _np(translations)
+    h = _np(half_sizes)
+    y = _np(yaws)
+    valid = _np(valid).astype(bool)
+    B, N = valid.shape
+    bounds = np.array([f.bounds for f in floors], dtype=np.float64)  # (B, 4)
+    origins = bounds[:, :2]
+    shapes = np.stack([np.ceil((bounds[:, 3] - bounds[:, 1]) / cell - 1e-9),
+                       np.ceil((bounds[:, 2] - bounds[:, 0]) / cell - 1e-9)], 1).astype(np.int64)
+    shapes = np.maximum(shapes, 1)
+    offsets, (HA, WA) = _pack(shapes)
+    stride = WA + 1
+
+    def paint(item_scene, row, lo, hi, weight=None):
+        """Difference-array entries painting cells lo < x_centre < hi of ``row`` of each item's scene."""
+        b = item_scene
+        x0 = origins[b, 0]
+        js = np.floor((lo - x0) / cell - 0.5) + 1
+        je = np.ceil((hi - x0) / cell - 0.5)
+        js = np.clip(js, 0, shapes[b, 1]).astype(np.int64)
+        je = np.clip(je, 0, shapes[b, 1]).astype(np.int64)
+        keep = je > js
+        base = (offsets[b, 0] + row) * stride + offsets[b, 1]
+        return base[keep] + js[keep], base[keep] + je[keep], keep
+
+    size = HA * stride
+
+    def raster(starts, ends):
+        d = np.bincount(starts, minlength=size) - np.bincount(ends, minlength=size)
+        return np.cumsum(d.reshape(HA, stride), axis=1)[:, :WA]
+
+    # --- floors: inside (crossing parity) and at least `radius` from every wall (edge capsules) -----
+    verts = [f.vertices for f in floors]
+    n_edges = np.array([len(v) for v in verts])
+    A = np.concatenate(verts)
+    Bv = np.concatenate([np.roll(v, -1, 0) for v in verts])
+    edge_scene = np.repeat(np.arange(B), n_edges)
+    # every (row, edge) pair of the same scene
+    row_scene, row = _ragged_rows(np.zeros(B, dtype=np.int64), shapes[:, 0])
+    row_scene = np.arange(B)[row_scene]
+    edge_start = np.cumsum(n_edges) - n_edges
+    pr, pe_local = _ragged_rows(np.zeros(len(row), dtype=np.int64), n_edges[row_scene])
+    pe = edge_start[row_scene[pr]] + pe_local
+    ps, prow = row_scene[pr], row[pr]
+    z = origins[ps, 1] + (prow + 0.5) * cell
+    ax, az, bx, bz = A[pe, 0], A[pe, 1], Bv[pe, 0], Bv[pe, 1]
+    crosses = (az > z) != (bz > z)
+    xc = ax + (z - az) * (bx - ax) / np.where(crosses, bz - az, 1.0)
+    s1, e1, _ = paint(ps[crosses], prow[crosses], xc[crosses], np.full(crosses.sum(), _BIG))
+    inside = (raster(s1, e1) % 2) == 1
+    ex, ez = bx - ax, bz - az
+    length = np.hypot(ex, ez)
+    ux, uz = ex / length, ez / length
+    lo, hi = _union([
+        _rect_row_interval((ax + bx) / 2, (az + bz) / 2, ux, uz, length / 2, radius, z),
+        _disk_row_interval(ax, az, radius, z), _disk_row_interval(bx, bz, radius, z)])
+    s2, e2, _ = paint(ps, prow, lo, hi)
+    floor = inside & (raster(s2, e2) == 0)
+
+    # --- obstacles: footprints inflated by a disk of `radius` (rounded rectangles) ------------------
+    ob, on = np.nonzero(valid)
+    if len(ob):
+        cx, cz = t[ob, on, 0], t[ob, on, 2]
+        hx, hz = np.maximum(h[ob, on, 0], 0), np.maximum(h[ob, on, 2], 0)
+        c, s = np.cos(y[ob, on]), np.sin(y[ob, on])
+        ext_z = np.abs(s) * hx + np.abs(c) * hz + radius
+        z0 = origins[ob, 1]
+        first = np.ceil((cz - ext_z - z0) / cell - 0.5).astype(np.int64)
+        last = np.floor((cz + ext_z - z0) / cell - 0.5).astype(np.int64)
+        first = np.clip(first, 0, None)
+        last = np.minimum(last, shapes[ob, 0] - 1)
+        k, orow = _ragged_rows(first, last - first + 1)
+        zr = z0[k] + (orow + 0.5) * cell
+        # local x axis in the world is (c, -s); corners from box_corners_xz
+        corners = box_corners_xz(np.stack([cx, cz], 1), np.stack([hx, hz], 1), y[ob, on])  # (K, 4, 2)
+        pieces = [_rect_row_interval(cx[k], cz[k], c[k], -s[k], hx[k] + radius, hz[k], zr),
+                  _rect_row_interval(cx[k], cz[k], c[k], -s[k], hx[k], hz[k] + radius, zr)]
+        pieces += [_disk_row_interval(corners[k, q, 0], corners[k, q, 1], radius, zr) for q in range(4)]
+        lo, hi = _union(pieces)
+        s3, e3, keep = paint(ob[k], orow, lo, hi)
+        occupied = raster(s3, e3) > 0
+    else:
+        occupied = np.zeros((HA, WA), dtype=bool)
+        s3 = e3 = np.zeros(0, dtype=np.int64)
+        k = keep = np.zeros(0, dtype=np.int64)
+
+    free = floor & ~occupied
+    labels, n_labels = ndimage.label(free)
+    scene_atlas = np.full((HA, WA), -1, dtype=np.int64)
+    for b in range(B):
+        (oy, ox), (hh, ww) = offsets[b], shapes[b]
+        scene_atlas[oy:oy + hh, ox:ox + ww] = b
+    flat_labels = labels.ravel()
+    sizes = np.bincount(flat_labels, minlength=n_labels + 1)
+    label_scene = np.full(n_labels + 1, -1, dtype=np.int64)
+    label_scene[flat_labels] = scene_atlas.ravel()
+    comp_scene = label_scene[1:]
+    regions = np.bincount(comp_scene, minlength=B) if n_labels else np.zeros(B, dtype=np.int64)
+    largest_cells = np.zeros(B, dtype=np.int64)
+    largest_label = np.zeros(B, dtype=np.int64)
+    if n_labels:
+        order = np.lexsort((-sizes[1:], comp_scene))  # by scene, then size descending
+        first_of_scene = np.ones(len(order), dtype=bool)
+        first_of_scene[1:] = comp_scene[order][1:] != comp_scene[order][:-1]
+        best = order[first_of_scene]
+        largest_label[comp_scene[best]] = best + 1
+        largest_cells[comp_scene[best]] = sizes[best + 1]
+    free_cells = np.bincount(scene_atlas[free], minlength=B)
+    floor_cells = np.bincount(scene_atlas[floor], minlength=B)
+
+    reach_out = np.zeros((B, N), dtype=bool)
+    if reach and len(ob):
+        is_largest = np.zeros(n_labels + 1, dtype=bool)
+        is_largest[largest_label[largest_label > 0]] = True
+        largest = is_largest[labels]
+        near = ndimage.binary_dilation(largest, structure=np.ones((3, 3), dtype=bool))
+        prefix = np.zeros((HA, stride), dtype=np.int64)
+        prefix[:, 1:] = np.cumsum(near, axis=1)
+        flat = prefix.ravel()
+        hit = (flat[e3] - flat[s3]) > 0
+        obj = k[keep]
+        touched = np.bincount(obj[hit], minlength=len(ob)) > 0
+        reach_out[ob, on] = touched
+    clear = np.full(B, np.nan)
+    if clearance:
+        dist = ndimage.distance_transform_edt(free) * cell
+        sums = np.bincount(scene_atlas[free], weights=dist[free], minlength=B)
+        clear = np.where(free_cells > 0, sums / np.maximum(free_cells, 1), 0.0)
+    return FreeSpace(cell, radius, origins, shapes, offsets, floor, free, labels, largest_label, floor_cells,
+                     free_cells, largest_cells, regions, reach_out, clear)
+
+
+def _np(x) -> np.ndarray:
+    if isinstance(x, torch.Tensor):
+        x = x.detach().cpu()
+        return x.numpy() if x.dtype == torch.bool else x.double().numpy()
+    return np.asarray(x)

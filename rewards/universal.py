@@ -1,0 +1,134 @@
+"""Universal rewards (iARCS appendix, Algorithms 1-4), batched: each is a function of a
+:class:`~iarcs_env.scene.SceneBatch` returning one value per scene as a float32 tensor ``(B,)`` on the
+batch's device. They are registered by name in :data:`REWARDS` (add your own with :func:`register_reward`).
+
+* ``collision`` (Alg. 1): +1 when no two ground objects penetrate (3D box overlap > ``threshold`` m^3,
+  the metric's 1e-6), otherwise minus the total penetration volume (m^3) of the penetrating pairs.
+* ``boundary`` (Alg. 2): +2 when no object's footprint (shrunk by ``shrink`` = 0.05 m per side, as the
+  R_out metric) has more than ``threshold`` = 1e-5 m^2 outside the floor polygon, otherwise minus the total
+  out-of-bound area (m^2) of those objects.
+* ``accessibility`` (Alg. 3): on an occupancy grid (``cell`` m, 0.1 by default for speed; the metrics use
+  0.05) with ground objects inflated and the walls eroded by the agent radius (0.3 m),
+  ``1.0 * coverage - 0.1 * regions + 0.5 * clearance`` where ``coverage`` = cells of the largest free
+  4-connected region / free cells of the same room with no furniture (1 for an empty room), ``regions`` =
+  number of free regions, ``clearance`` = mean distance (m) from a free cell to the nearest blocked cell
+  (Euclidean distance transform).
+* ``object_count`` (Alg. 4): ``mode="kl"`` (default): minus KL(batch || training) between the batch's
+  object-count histogram and the training set's (``DatasetStats.count_distribution``), both smoothed
+  with ``eps``; the same value for every scene of the batch (it rewards the batch as a whole, which keeps
+  the count distribution from collapsing). ``mode="log_prob"``: per scene, the training log-probability
+  of the scene's object count (smoothed), which ranks scenes within a batch.
+
+Ground objects are all but ceiling and pendant lamps; object counts include every non-empty slot.
+The rewards run torch single-threaded (``iarcs_env.geometry.single_thread``): their tensors are small, and
+intra-op threads only slow them down on a busy CPU.
+"""
+
+from __future__ import annotations
+
+from typing import Callable
+
+import numpy as np
+import torch
+
+from iarcs_env import geometry as geo
+from iarcs_env.geometry import single_thread
+from iarcs_env.scene import SceneBatch
+from iarcs_env.stats import DatasetStats
+
+RewardFn = Callable[..., torch.Tensor]
+
+#: name -> batched reward function ``f(batch, **options) -> (B,)``.
+REWARDS: dict[str, RewardFn] = {}
+
+
+def register_reward(name: str):
+    """Decorator registering ``f(batch: SceneBatch, **options) -> Tensor (B,)`` under ``name``."""
+
+    def wrap(fn: RewardFn) -> RewardFn:
+        if name in REWARDS and REWARDS[name] is not fn:
+            raise ValueError(f"a reward named {name!r} is already registered")
+        REWARDS[name] = fn
+        fn.reward_name = name
+        return fn
+
+    return wrap
+
+
+def get_reward(name: str) -> RewardFn:
+    try:
+        return REWARDS[name]
+    except KeyError:
+        raise ValueError(f"unknown reward {name!r}; registered rewards: {', '.join(sorted(REWARDS))}") from None
+
+
+def _out(values, batch: SceneBatch) -> torch.Tensor:
+    return torch.as_tensor(values).to(device=batch.labels.device, dtype=torch.float32)
+
+
+@register_reward("collision")
+@single_thread()
+def collision_reward(batch: SceneBatch, threshold: float = geo.COLLISION_VOLUME, bonus: float = 1.0) -> torch.Tensor:
+    """+``bonus`` when no ground objects penetrate, else minus the total penetration volume (m^3)."""
+    vol = geo.box_overlap_volumes(batch.translations, batch.half_sizes, batch.yaws, batch.ground_mask).triu(1)
+    penetrating = vol > threshold
+    total = (vol * penetrating).sum((1, 2))
+    return _out(torch.where(penetrating.flatten(1).any(1), -total, torch.full_like(total, bonus)), batch)
+
+
+@register_reward("boundary")
+@single_thread()
+def boundary_reward(batch: SceneBatch, shrink: float = geo.OUT_OF_BOUND_SHRINK,
+                    threshold: float = geo.OUT_OF_BOUND_AREA, bonus: float = 2.0,
+                    ground_only: bool = False) -> torch.Tensor:
+    """+``bonus`` when every footprint stays on the floor, else minus the out-of-bound area (m^2)."""
+    mask = batch.ground_mask if ground_only else batch.mask
+    corners = geo.footprints(batch.translations.double(), batch.half_sizes.double(), batch.yaws.double(), shrink)
+    area = geo.out_of_floor_area(corners, batch.floors, mask)
+    outside = area > threshold
+    total = (area * outside).sum(1)
+    return _out(torch.where(outside.any(1), -total, torch.full_like(total, bonus)), batch)
+
+
+@register_reward("accessibility")
+@single_thread()
+def accessibility_reward(batch: SceneBatch, cell: float = 0.1, agent_radius: float = geo.AGENT_RADIUS,
+                         w_coverage: float = 1.0, w_regions: float = 0.1, w_clearance: float = 0.5) -> torch.Tensor:
+    """``w_coverage * coverage - w_regions * regions + w_clearance * clearance`` (see the module doc)."""
+    space = geo.free_space(batch.floors, batch.translations, batch.half_sizes, batch.yaws, batch.ground_mask,
+                           cell=cell, radius=agent_radius, reach=False, clearance=w_clearance != 0)
+    coverage = np.where(space.floor_cells > 0, space.largest_cells / np.maximum(space.floor_cells, 1), 0.0)
+    clearance = np.nan_to_num(space.clearance) if w_clearance else 0.0
+    return _out(w_coverage * coverage - w_regions * space.regions + w_clearance * clearance, batch)
+
+
+def _count_distribution(stats: DatasetStats | None, distribution, n: int) -> np.ndarray:
+    if distribution is None:
+        if stats is None:
+            raise ValueError("the object_count reward needs the training set's statistics: pass stats=DatasetStats "
+                             "(or count_distribution=[p0, p1, ...])")
+        distribution = stats.count_distribution(max(n, len(stats.object_count_histogram) - 1))
+    p = np.zeros(max(n + 1, len(distribution)))
+    p[: len(distribution)] = np.asarray(distribution, dtype=np.float64)
+    return p / max(p.sum(), 1e-12)
+
+
+@register_reward("object_count")
+@single_thread()
+def object_count_reward(batch: SceneBatch, stats: DatasetStats | None = None, count_distribution=None,
+                        mode: str = "kl", eps: float = 1e-4) -> torch.Tensor:
+    """Object-count prior: ``-KL(batch || training)`` for every scene (``mode="kl"``) or the training
+    log-probability of each scene's count (``mode="log_prob"``)."""
+    counts = batch.mask.sum(1).cpu().numpy()
+    train = _count_distribution(stats, count_distribution, batch.num_slots)
+    if mode == "log_prob":
+        logp = np.log((train + eps) / (train + eps).sum())
+        return _out(logp[np.clip(counts, 0, len(logp) - 1)], batch)
+    if mode != "kl":
+        raise ValueError(f"object_count mode must be 'kl' or 'log_prob', not {mode!r}")
+    hist = np.bincount(np.clip(counts, 0, len(train) - 1), minlength=len(train)).astype(np.float64)
+    p = (hist / max(hist.sum(), 1) + eps)
+    q = train + eps
+    p, q = p / p.sum(), q / q.sum()
+    kl = float(np.sum(p * np.log(p / q)))
+    return _out(np.full(batch.batch_size, -kl), batch)

@@ -1,0 +1,180 @@
+"""The paper's metrics (iarcs_env.metrics / iarcs_env.geometry): hand-made scenes with known answers,
+agreement with a per-pair shapely reference on random scenes, and the reference figures of real
+3D-FRONT bedrooms."""
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+import shapely_reference as ref
+from iarcs_env import geometry as geo
+from iarcs_env.metrics import (HEADLINE, batch_float64, class_kl, count_distance, evaluate_batch,
+                               evaluate_layouts)
+from scene_factory import L_SHAPE, RECT, box, make_layout, random_layouts
+
+REAL = Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "3dfront" / "bedroom_val.json"
+
+
+def run(layout, **kw):
+    return evaluate_batch(batch_float64([layout]), **kw)
+
+
+# --- collisions ---------------------------------------------------------------------------------------
+def test_touching_boxes_do_not_collide_overlapping_boxes_do():
+    touching = make_layout([box("wardrobe", 1.0, 1.5, 0.5, 0.3), box("cabinet", 2.0, 1.5, 0.5, 0.3)])
+    r = run(touching)
+    assert not r.colliding.any() and r.overlap.max() < 1e-12
+    overlapping = make_layout([box("wardrobe", 1.0, 1.5, 0.5, 0.3), box("cabinet", 1.9, 1.5, 0.5, 0.3)])
+    r = run(overlapping)
+    assert r.colliding[0].tolist() == [True, True]
+    assert r.overlap[0, 0, 1] == pytest.approx(0.1 * 0.6 * 0.8, abs=1e-12)
+    out = evaluate_layouts([touching, overlapping])
+    assert out["Col_obj"] == pytest.approx(0.5) and out["Col_scene"] == pytest.approx(0.5)
+
+
+def test_rotated_square_overlap_has_the_known_area():
+    # a 1 m square and the same square turned 45 degrees: a regular octagon of area 2 (sqrt 2 - 1)
+    sq = torch.tensor([[[0.0, 0.0]]], dtype=torch.float64)
+    half = torch.tensor([[[0.5, 0.5]]], dtype=torch.float64)
+    p = geo.box_corners_xz(sq[0], half[0], torch.tensor([0.0], dtype=torch.float64))
+    q = geo.box_corners_xz(sq[0], half[0], torch.tensor([np.pi / 4], dtype=torch.float64))
+    assert geo.convex_overlap_area(p, q).item() == pytest.approx(2 * (np.sqrt(2) - 1), abs=1e-12)
+    lay = make_layout([box("table", 2, 1.5, 0.5, 0.5, 0.0, hy=0.5), box("desk", 2, 1.5, 0.5, 0.5, np.pi / 4, hy=0.5)])
+    assert run(lay).overlap[0, 0, 1] == pytest.approx(2 * (np.sqrt(2) - 1) * 1.0, abs=1e-12)
+
+
+def test_stacked_boxes_at_different_heights_do_not_collide():
+    lay = make_layout([box("cabinet", 2, 1.5, 0.5, 0.3, y0=0.0, hy=0.4),
+                       box("shelf", 2, 1.5, 0.5, 0.3, y0=0.8, hy=0.3),      # sits exactly on top
+                       box("bookshelf", 2, 1.5, 0.5, 0.3, y0=1.5, hy=0.2)])  # above, with a gap
+    assert not run(lay).colliding.any()
+
+
+def test_lamp_inside_a_bed_box_is_not_a_collision():
+    bed = box("double_bed", 2, 1.5, 1.0, 1.1, hy=0.5)
+    lamp = ("pendant_lamp", (2, 0.8, 1.5), (0.3, 0.3, 0.3), 0.0)  # overlaps the bed's box in 3D
+    r = run(make_layout([bed, lamp]))
+    assert r.ground[0].tolist() == [True, False]
+    assert not r.colliding.any()
+    out = evaluate_layouts([make_layout([bed, lamp])])
+    assert out["Col_obj"] == 0 and out["n_ground_objects"] == 1 and out["n_objects"] == 2
+
+
+# --- out of bound -------------------------------------------------------------------------------------
+def test_object_half_through_an_l_shaped_wall_has_the_known_out_area():
+    # the inner wall z = 2 for x in [2, 4]; the box spans z 1.5..2.5, shrunk 1.55..2.45, x 2.55..3.45
+    through = box("wardrobe", 3.0, 2.0, 0.5, 0.5)
+    corner = box("cabinet", 2.0, 2.0, 0.5, 0.5)  # centred on the reflex corner: one quarter outside
+    inside = box("nightstand", 1.0, 1.0, 0.3, 0.3)
+    r = run(make_layout([through, corner, inside], floor=L_SHAPE))
+    assert r.out_area[0, 0] == pytest.approx(0.9 * 0.45, abs=1e-12)
+    assert r.out_area[0, 1] == pytest.approx(0.45 * 0.45, abs=1e-12)
+    assert r.out_area[0, 2] == 0
+    assert r.out_of_bound[0].tolist() == [True, True, False]
+    out = evaluate_layouts([make_layout([through, corner, inside], floor=L_SHAPE)])
+    assert out["R_out"] == pytest.approx(2 / 3)
+
+
+def test_flush_against_the_wall_is_not_out_of_bound_thanks_to_the_shrink():
+    lay = make_layout([box("wardrobe", 0.52, 1.5, 0.55, 0.3)])  # 3 cm through the wall x = 0
+    assert not run(lay).out_of_bound.any()
+    lay = make_layout([box("wardrobe", 0.40, 1.5, 0.55, 0.3)])  # 15 cm through: 10 cm after the shrink
+    r = run(lay)
+    assert r.out_of_bound[0, 0] and r.out_area[0, 0] == pytest.approx(0.10 * 0.5, abs=1e-12)
+
+
+# --- walkability and reachability ---------------------------------------------------------------------
+def test_a_wardrobe_splitting_the_room_gives_the_known_walkable_ratio_and_reach():
+    # room 4 x 3; a wardrobe wall-to-wall at x = 1.4..1.6; free x: 0.3..1.1 (left) and 1.9..3.7 (right)
+    objects = [box("wardrobe", 1.5, 1.5, 0.1, 1.5, hy=1.0),
+               box("nightstand", 0.25, 1.5, 0.2, 0.2),   # only reachable from the small left part
+               box("double_bed", 3.0, 1.5, 0.5, 0.5)]    # in the large right part
+    r = run(make_layout(objects))
+    left, right = 0.8 * 2.4, 1.8 * 2.4
+    # the nightstand (inflated) and the bed (inflated) remove cells from both parts
+    assert r.walkable[0] == pytest.approx(r.largest_cells[0] / r.free_cells[0])
+    grid = r.space.scene_grid(0)
+    xs = grid["xs"] + 2.0  # grids are in the centred frame: the 4 x 3 room's centre is (2, 1.5)
+    assert grid["largest"][:, xs < 1.5].sum() == 0 and grid["free"][:, xs < 1.5].sum() > 0
+    bed_inflated = np.pi * 0.09 + 4 * 0.3 + 1.0 * 1.0  # rounded square of side 1 grown by 0.3
+    stand_inflated = (0.45 + 0.05) * 0.4 + 0.3 * 0.4 + (np.pi * 0.09) / 2  # clipped at the wall side
+    expected = (right - bed_inflated) / (right - bed_inflated + left - stand_inflated + 0.05 * 0.8)
+    assert r.walkable[0] == pytest.approx(expected, abs=0.03)
+    assert r.reachable[0].tolist() == [True, False, True]
+    out = evaluate_layouts([make_layout(objects)])
+    assert out["R_reach"] == pytest.approx(2 / 3)
+    # the unreachable mask marks the left part only
+    res = evaluate_layouts([make_layout(objects)], keep_scenes=True, keep_masks=True)["scenes"][0]
+    mask, mxs, _ = res.unreachable
+    assert mask.any() and mask[:, mxs + 2.0 > 1.5].sum() == 0 and res.unreachable_objects == [1]
+
+
+def test_nothing_free_gives_zero_walkability_and_no_reach():
+    lay = make_layout([box("wardrobe", 2, 1.5, 1.9, 1.4)], floor=RECT)
+    r = run(lay)
+    assert r.free_cells[0] == 0 and r.walkable[0] == 0 and not r.reachable.any()
+
+
+def test_empty_room_is_fully_walkable():
+    r = run(make_layout([("ceiling_lamp", (2, 2.4, 1.5), (0.3, 0.1, 0.3), 0.0)]))
+    assert r.walkable[0] == 1.0
+    # free cells: centres at least 0.3 m from the walls of the 4 x 3 room
+    assert r.free_cells[0] == pytest.approx((3.4 / 0.05) * (2.4 / 0.05), rel=0.03)
+
+
+# --- agreement with the per-pair shapely reference ---------------------------------------------------
+@pytest.mark.parametrize("seed", [0, 1])
+def test_batched_metrics_agree_with_the_shapely_reference(seed):
+    layouts = random_layouts(24, seed=seed)
+    res = evaluate_batch(batch_float64(layouts))
+    for b, lay in enumerate(layouts):
+        lay = lay.centred()
+        hit, total = ref.collisions(lay)
+        assert set(np.nonzero(res.colliding[b])[0]) == hit
+        assert np.triu(res.overlap[b], 1).sum() == pytest.approx(total, abs=1e-9)
+        areas = np.array(ref.out_areas(lay))
+        np.testing.assert_allclose(res.out_area[b][: len(lay)], areas, atol=1e-9)
+        wk = ref.walkable(lay)
+        grid = res.space.scene_grid(b)
+        assert (grid["free"] == wk["free"]).all()
+        assert res.largest_cells[b] == wk["n_largest"]
+        assert {k: bool(res.reachable[b, k]) for k in wk["reach"]} == wk["reach"]
+    summary = evaluate_layouts(layouts)
+    expected = ref.metrics([lay.centred() for lay in layouts])
+    for key in HEADLINE:
+        assert summary[key] == pytest.approx(expected[key], abs=1e-12)
+
+
+def test_headline_keys_are_fractions_and_set_statistics():
+    layouts = random_layouts(12, seed=3)
+    out = evaluate_layouts(layouts, reference=layouts)
+    for key in HEADLINE:
+        assert 0.0 <= out[key] <= 1.0
+    assert out["KL_class"] == pytest.approx(0.0, abs=1e-12) and out["count_distance"] == 0.0
+    fewer = [make_layout([box("double_bed", 2, 1.5, 0.8, 1.0)])] * 12
+    assert class_kl(layouts, fewer) > 1.0
+    assert count_distance(layouts, fewer) == pytest.approx(np.mean([len(l) for l in layouts]) - 1)
+
+
+def test_mixed_room_types_are_refused():
+    a = make_layout([box("double_bed", 2, 1.5, 0.8, 1.0)])
+    b = make_layout([box("dining_table", 2, 1.5, 0.8, 0.5)], room="diningroom")
+    with pytest.raises(ValueError, match="room types"):
+        evaluate_layouts([a, b])
+
+
+# --- real 3D-FRONT bedrooms ---------------------------------------------------------------------------
+@pytest.mark.skipif(not REAL.exists(), reason=f"real 3D-FRONT layouts not available at {REAL.resolve()}")
+def test_real_bedrooms_land_on_the_reference_figures():
+    from iarcs_env.datasets import load_layouts
+
+    out = evaluate_layouts(load_layouts(REAL))
+    # ../shared/data/3dfront/README.md: Col_obj 41.4%, Col_scene 55.8%, R_out 7.3%, R_reach 78.6%, R_walkable 0.915
+    assert out["n_scenes"] == 500 and out["n_objects"] == 2335
+    assert out["Col_obj"] == pytest.approx(0.414, abs=0.02)
+    assert out["Col_scene"] == pytest.approx(0.558, abs=0.02)
+    assert out["R_out"] == pytest.approx(0.073, abs=0.02)
+    assert out["R_reach"] == pytest.approx(0.786, abs=0.02)
+    assert out["R_walkable"] == pytest.approx(0.915, abs=0.02)

@@ -1,0 +1,201 @@
+"""Pretraining: configs, augmentation, loss going down, resuming an interrupted run, and the CLI."""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import replace
+
+import numpy as np
+import pytest
+import torch
+
+from agents.denoiser import ScenePrior
+from agents.pretrain import (PRIOR_FILE, STATE_FILE, PretrainConfig, SceneTensors, config_from_dict,
+                             encode_batch, load_config, lr_at, resolve_dataset, stats_for_training, train)
+from iarcs_env import FloorPlan, Layout, get_room
+from iarcs_env.datasets import save_layouts
+from iarcs_env.scene import SceneBatch, floor_features
+
+BEDROOM = get_room("bedroom")
+
+
+def toy_bedrooms(n: int, seed: int = 0) -> list[Layout]:
+    """Rectangular rooms with a bed against the back wall and a few random objects (no generator needed)."""
+    rng = np.random.default_rng(seed)
+    out = []
+    for i in range(n):
+        w, d = rng.uniform(3, 5), rng.uniform(3, 4.5)
+        x0, z0 = rng.uniform(-2, 2, size=2)
+        floor = FloorPlan.from_vertices([(x0, z0), (x0 + w, z0), (x0 + w, z0 + d), (x0, z0 + d)])
+        labels, trans, half, yaws = ["double_bed"], [[x0 + w / 2, 0.4, z0 + 1.1]], [[0.9, 0.4, 1.0]], [0.0]
+        for _ in range(rng.integers(0, 5)):
+            labels.append(str(rng.choice(["nightstand", "wardrobe", "pendant_lamp", "chair"])))
+            trans.append([x0 + rng.uniform(0.4, w - 0.4), rng.uniform(0.2, 2.0), z0 + rng.uniform(0.4, d - 0.4)])
+            half.append(list(rng.uniform(0.15, 0.5, size=3)))
+            yaws.append(float(rng.choice([0, np.pi / 2, np.pi, -np.pi / 2])))
+        out.append(Layout("bedroom", floor, labels, trans, half, yaws, id=f"toy_{i}"))
+    return out
+
+
+@pytest.fixture(autouse=True)
+def one_thread():
+    """Tiny models run fastest (and reproducibly) on one thread; restore the setting afterwards."""
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(n)
+
+
+def tiny_config(tmp_path, **kw) -> PretrainConfig:
+    base = dict(preset="tiny", steps=30, batch_size=16, lr=3e-3, warmup_steps=2, checkpoint_every=10,
+                log_every=5, eval_every=10, val_scenes=8, out=str(tmp_path / "run"), tensorboard=False)
+    base.update(kw)
+    return PretrainConfig(**base)
+
+
+def test_config_yaml_round_trip_and_clear_errors(tmp_path):
+    cfg = load_config("experiments/pretrain_bedroom.yaml")
+    assert cfg.room == "bedroom" and cfg.dataset == "procedural" and cfg.preset == "small"
+    assert load_config("experiments/pretrain_bedroom.yaml", steps=7, out="x").steps == 7
+    for name in ("livingroom", "diningroom", "bedroom_real"):
+        load_config(f"experiments/pretrain_{name}.yaml")
+    with pytest.raises(ValueError, match=r"unknown key 'stpes' \(did you mean 'steps'\?\)"):
+        config_from_dict({"stpes": 3})
+    with pytest.raises(ValueError, match="batch_size must be a int"):
+        config_from_dict({"batch_size": "big"})
+    with pytest.raises(ValueError, match="unknown room type"):
+        config_from_dict({"room": "kitchen"})
+    with pytest.raises(ValueError, match="unknown denoiser field"):
+        config_from_dict({"model": {"layers": 3}})
+    assert config_from_dict({"lr": 1}).lr == 1.0  # ints are fine where floats are expected
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("- a\n- b\n")
+    with pytest.raises(ValueError, match="mapping"):
+        load_config(bad)
+    with pytest.raises(FileNotFoundError, match="no config file"):
+        load_config(tmp_path / "none.yaml")
+
+
+def test_every_config_field_has_a_docstring():
+    import ast
+    import inspect
+
+    import agents.pretrain as mod
+
+    tree = ast.parse(inspect.getsource(mod.PretrainConfig))
+    body = tree.body[0].body
+    documented = {body[i].target.id for i in range(len(body) - 1)
+                  if isinstance(body[i], ast.AnnAssign) and isinstance(body[i + 1], ast.Expr)}
+    assert documented == {f for f in PretrainConfig.__dataclass_fields__}
+
+
+def test_dataset_paths_resolve_from_cwd_or_repository(tmp_path, monkeypatch):
+    assert resolve_dataset("procedural") == "procedural"
+    monkeypatch.chdir(tmp_path)
+    assert resolve_dataset("experiments/pretrain_bedroom.yaml").endswith("experiments/pretrain_bedroom.yaml")
+    with pytest.raises(FileNotFoundError, match="looked at"):
+        resolve_dataset("nowhere/rooms.json")
+
+
+def test_tensor_rotation_matches_layout_rotated():
+    lays = toy_bedrooms(6, seed=1)
+    stats = stats_for_training(lays, "bedroom", rotation_augment=True)
+    data = SceneTensors.from_layouts(lays, 12)
+    k = torch.randint(0, 4, (6,), generator=torch.Generator().manual_seed(5))
+    batch = data.batch(torch.arange(6), torch.Generator().manual_seed(5), rotate=True)
+    x0, floor = encode_batch(BEDROOM, stats, *batch)
+    ref = SceneBatch.from_layouts([l.centred().rotated(int(ki) * math.pi / 2) for l, ki in zip(lays, k)],
+                                  num_slots=12)
+    assert torch.allclose(x0, ref.encode(stats), atol=1e-5)
+    ref_floor = floor_features(ref.floors, stats)
+    # the same boundary point set (possibly from another start vertex): compare as sets
+    for a, b in zip(floor, ref_floor):
+        d = torch.cdist(a, b)
+        assert d.min(1).values.max() < 5e-3
+
+
+def test_permutation_augmentation_keeps_the_scene():
+    lays = toy_bedrooms(4)
+    data = SceneTensors.from_layouts(lays, 12)
+    labels, trans, *_ = data.batch(torch.arange(4), torch.Generator().manual_seed(0), permute=True)
+    assert not torch.equal(labels, data.labels)
+    assert torch.equal(labels.sort(1).values, data.labels.sort(1).values)
+    assert torch.allclose(trans.sum(1), data.translations.sum(1), atol=1e-5)
+
+
+def test_lr_schedule_warms_up_and_decays():
+    cfg = PretrainConfig(steps=100, warmup_steps=10, lr=1e-3, min_lr_ratio=0.1)
+    assert lr_at(0, cfg) == pytest.approx(1e-4) and lr_at(9, cfg) == pytest.approx(1e-3)
+    assert lr_at(99, cfg) == pytest.approx(1e-4, rel=0.01)
+
+
+def test_pretraining_lowers_the_loss(tmp_path):
+    cfg = tiny_config(tmp_path, steps=60)
+    result = train(cfg, toy_bedrooms(80), progress=False, log=lambda m: None)
+    losses = [v for _, v in result.losses]
+    assert result.step == 60 and len(losses) == 60
+    assert np.mean(losses[-10:]) < 0.8 * np.mean(losses[:5])
+    assert result.val_losses[-1][1] < result.val_losses[0][1]
+    out = tmp_path / "run"
+    for name in (STATE_FILE, PRIOR_FILE, "config.yaml", "dataset_stats.json", "metrics.jsonl"):
+        assert (out / name).exists(), name
+    rows = [json.loads(line) for line in (out / "metrics.jsonl").read_text().splitlines()]
+    assert rows[-1]["step"] == 60 and "val_loss_ema" in rows[-1]
+    prior = ScenePrior.load(out / PRIOR_FILE)
+    assert prior.meta["step"] == 60
+    scenes = prior.sample([l.floor for l in toy_bedrooms(2, seed=9)], num_steps=5,
+                          generator=torch.Generator().manual_seed(0))
+    assert scenes.labels.shape == (2, 12)
+
+
+def test_interrupted_run_resumes_where_it_stopped(tmp_path):
+    rooms = toy_bedrooms(40)
+    quiet = dict(progress=False, log=lambda m: None)
+    # uninterrupted reference
+    ref = train(tiny_config(tmp_path / "a", steps=20, checkpoint_every=5), rooms, **quiet)
+    # the same run, stopped at step 10 (as a kill after its checkpoint would), then started again
+    cfg = tiny_config(tmp_path / "b", steps=20, checkpoint_every=5)
+    first = train(cfg, rooms, max_steps=10, **quiet)
+    assert first.step == 10
+    state = torch.load(tmp_path / "b" / "run" / STATE_FILE, weights_only=True)
+    assert state["step"] == 10
+    second = train(cfg, rooms, **quiet)
+    assert second.resumed_from == 10 and second.step == 20
+    assert [s for s, _ in second.losses] == list(range(11, 21))
+    resumed = [v for _, v in first.losses + second.losses]
+    assert np.allclose(resumed, [v for _, v in ref.losses], rtol=1e-5, atol=1e-6)
+    # a finished run started again does nothing more
+    assert train(cfg, rooms, **quiet).losses == []
+    # resuming with another model is refused with a hint
+    with pytest.raises(ValueError, match="another output folder"):
+        train(replace(cfg, model={"width": 64}), rooms, **quiet)
+
+
+def test_cli_pretrain_and_sample(tmp_path, capsys):
+    from experiments.cli import main
+
+    data = save_layouts(toy_bedrooms(30), tmp_path / "rooms.json")
+    cfg = tmp_path / "cfg.yaml"
+    cfg.write_text(f"room: bedroom\ndataset: {data}\npreset: tiny\nbatch_size: 8\nsteps: 50\n"
+                   f"checkpoint_every: 2\nlog_every: 2\neval_every: 2\nval_scenes: 3\ntensorboard: false\n")
+    run = tmp_path / "run"
+    assert main(["pretrain", "--config", str(cfg), "--out", str(run), "--steps", "4"]) == 0
+    assert "step 4/4" in capsys.readouterr().out
+    assert main(["pretrain", "--config", str(cfg), "--out", str(run), "--steps", "4", "--no-resume"]) == 2
+    assert "drop --no-resume" in capsys.readouterr().err
+
+    out = tmp_path / "samples.json"
+    args = ["sample", "--room", "bedroom", "--checkpoint", str(run / PRIOR_FILE), "--steps", "3"]
+    assert main(args + ["--floors", str(data), "--num-scenes", "5", "--out", str(out)]) == 0
+    scenes = json.loads(out.read_text())["scenes"]
+    assert len(scenes) == 5
+    src = json.loads(data.read_text())["scenes"]
+    assert scenes[2]["floor"] == src[2]["floor"]  # room for room, in the floor's own frame
+    assert main(args + ["--floors", str(data), "--num-scenes", "99", "--out", str(out)]) == 2
+    assert "--num-scenes 30 or fewer" in capsys.readouterr().err
+    assert main(args[:2] + ["livingroom"] + args[3:] + ["--out", str(out)]) == 2
+    assert "--room bedroom" in capsys.readouterr().err
+    assert main(["sample", "--room", "diningroom", "--out", str(out)]) == 2
+    assert "iarcs pretrain" in capsys.readouterr().err
+    assert main(args + ["--num-scenes", "0", "--out", str(out)]) == 2

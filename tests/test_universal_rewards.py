@@ -1,0 +1,130 @@
+"""Universal rewards (rewards.universal) and the composite reward (rewards.composite)."""
+
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+import torch
+
+import shapely_reference as ref
+from iarcs_env.metrics import batch_float64
+from iarcs_env.scene import SceneBatch
+from iarcs_env.stats import DatasetStats
+from rewards import (REWARDS, CompositeReward, accessibility_reward, boundary_reward, collision_reward,
+                     object_count_reward, register_reward)
+from scene_factory import L_SHAPE, box, make_layout, random_layouts
+
+
+def batch(*layouts):
+    return SceneBatch.from_layouts(list(layouts))
+
+
+def test_registry_names_the_four_universal_rewards():
+    assert {"collision", "boundary", "accessibility", "object_count"} <= set(REWARDS)
+
+
+def test_collision_reward_is_one_without_collision_and_decreases_with_overlap():
+    free = make_layout([box("wardrobe", 1.0, 1.5, 0.5, 0.3), box("cabinet", 2.0, 1.5, 0.5, 0.3)])  # touching
+    lamp = make_layout([box("double_bed", 2, 1.5, 1, 1, hy=0.5), ("pendant_lamp", (2, 0.8, 1.5), (0.3, 0.3, 0.3), 0.0)])
+    scenes = [free, lamp] + [make_layout([box("wardrobe", 1.0, 1.5, 0.5, 0.3), box("cabinet", 2.0 - d, 1.5, 0.5, 0.3)])
+                             for d in (0.1, 0.2, 0.4)]
+    r = collision_reward(batch(*scenes))
+    assert r.dtype == torch.float32 and r.shape == (5,)
+    assert r[0].item() == 1.0 and r[1].item() == 1.0
+    expected = [-d * 0.6 * 0.8 for d in (0.1, 0.2, 0.4)]  # minus the overlap volume (m^3)
+    np.testing.assert_allclose(r[2:].numpy(), expected, rtol=1e-5)
+    assert r[2] > r[3] > r[4]
+
+
+def test_boundary_reward_is_two_inside_and_minus_the_out_area_otherwise():
+    inside = make_layout([box("nightstand", 1.0, 1.0, 0.3, 0.3)], floor=L_SHAPE)
+    through = make_layout([box("wardrobe", 3.0, 2.0, 0.5, 0.5), box("cabinet", 2.0, 2.0, 0.5, 0.5)], floor=L_SHAPE)
+    r = boundary_reward(batch(inside, through))
+    assert r[0].item() == 2.0
+    assert r[1].item() == pytest.approx(-(0.9 * 0.45 + 0.45 * 0.45), rel=1e-5)
+    r0 = boundary_reward(batch(through), shrink=0.0)  # the raw footprints
+    assert r0[0].item() == pytest.approx(-(1.0 * 0.5 + 0.25), rel=1e-5)
+
+
+def test_accessibility_reward_prefers_an_open_room_to_a_split_one():
+    empty = make_layout([("ceiling_lamp", (2, 2.4, 1.5), (0.3, 0.1, 0.3), 0.0)])
+    corner = make_layout([box("wardrobe", 3.6, 0.35, 0.35, 0.3)])
+    split = make_layout([box("wardrobe", 1.5, 1.5, 0.1, 1.5, hy=1.0)])
+    r = accessibility_reward(batch(empty, corner, split), cell=0.05)
+    wk = ref.walkable(empty.centred(), 0.05)
+    assert r[0].item() == pytest.approx(1.0 - 0.1 + 0.5 * wk["clearance"], abs=1e-5)  # coverage 1, one region
+    assert r[0] > r[1] > r[2]
+    parts = accessibility_reward(batch(split), cell=0.05, w_coverage=0, w_clearance=0)
+    assert parts[0].item() == pytest.approx(-0.2)  # two regions
+
+
+def test_object_count_prior_kl_and_log_prob():
+    train = random_layouts(40, seed=1, max_objects=6)
+    stats = DatasetStats.from_layouts(train)
+    same = object_count_reward(SceneBatch.from_layouts(train, num_slots=12), stats=stats)
+    assert torch.allclose(same, same[0].expand_as(same)) and same[0].item() == pytest.approx(0.0, abs=1e-3)
+    full = [make_layout([box("chair", 0.5 + 0.3 * k, 1.0, 0.1, 0.1) for k in range(11)])] * 8
+    worse = object_count_reward(SceneBatch.from_layouts(full, num_slots=12), stats=stats)
+    assert worse[0].item() < -1.0
+    logp = object_count_reward(SceneBatch.from_layouts(train[:4] + full[:1], num_slots=12), stats=stats,
+                               mode="log_prob")
+    assert logp[4] < logp[:4].min()
+    with pytest.raises(ValueError, match="statistics"):
+        object_count_reward(SceneBatch.from_layouts(train[:2]))
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_rewards_agree_with_the_shapely_reference(seed):
+    layouts = random_layouts(16, seed=seed)
+    b = batch_float64(layouts)
+    centred = [lay.centred() for lay in layouts]
+    np.testing.assert_allclose(collision_reward(b).numpy(), [ref.collision_reward(l) for l in centred],
+                               rtol=1e-5, atol=1e-6)
+    np.testing.assert_allclose(boundary_reward(b).numpy(), [ref.boundary_reward(l) for l in centred],
+                               rtol=1e-5, atol=1e-6)
+    np.testing.assert_allclose(accessibility_reward(b).numpy(), [ref.accessibility_reward(l) for l in centred],
+                               rtol=1e-5, atol=1e-5)
+
+
+def test_composite_is_the_weighted_sum_of_its_terms():
+    layouts = random_layouts(6, seed=2)
+    stats = DatasetStats.from_layouts(layouts)
+    b = SceneBatch.from_layouts(layouts)
+    weights = {"collision": 1.0, "boundary": 0.5, "accessibility": 2.0, "object_count": 0.25}
+    reward = CompositeReward(weights, stats=stats, accessibility={"cell": 0.1})
+    total, terms = reward(b)
+    assert set(terms) == set(weights) and total.shape == (6,)
+    expected = sum(weights[k] * terms[k] for k in weights)
+    assert torch.allclose(total, expected)
+    assert torch.allclose(terms["collision"], collision_reward(b))
+    assert reward.options["object_count"] == {"stats": stats} and "stats" not in reward.options["collision"]
+    # the same from a config dict
+    cfg = {"collision": 1.0, "boundary": 0.5, "accessibility": {"weight": 2.0, "cell": 0.1}, "object_count": 0.25}
+    total2, _ = CompositeReward.from_config(cfg, stats=stats)(b)
+    assert torch.allclose(total, total2)
+    total3, _ = CompositeReward.from_config({"weights": weights, "options": {"accessibility": {"cell": 0.1}}},
+                                            stats=stats)(b)
+    assert torch.allclose(total, total3)
+
+
+def test_composite_errors_and_custom_terms():
+    with pytest.raises(ValueError, match="unknown reward"):
+        CompositeReward({"no_such_reward": 1.0})
+    with pytest.raises(ValueError, match="no option"):
+        CompositeReward({"collision": 1.0}, collision={"cell": 0.1})
+
+    @register_reward("test_object_count_plain")
+    def plain(batch):
+        return batch.mask.sum(1).float()
+
+    b = SceneBatch.from_layouts(random_layouts(3, seed=4))
+    total, terms = CompositeReward({"test_object_count_plain": 2.0, "collision": 1.0})(b)
+    assert torch.allclose(total, 2 * b.mask.sum(1).float() + collision_reward(b))
+    del REWARDS["test_object_count_plain"]
+
+
+def test_iarcs_env_never_imports_rewards():
+    code = ("import sys, iarcs_env, iarcs_env.metrics, iarcs_env.geometry, iarcs_env.distribution; "
+            "assert 'rewards' not in sys.modules and 'agents' not in sys.modules, sorted(sys.modules)")
+    subprocess.run([sys.executable, "-c", code], check=True)
