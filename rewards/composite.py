@@ -48,6 +48,14 @@ class CompositeReward:
             opts.update(own)
             self.options[name] = opts
 
+    #: Stage-1 weights of the universal rewards (paper section 3.3).
+    UNIVERSAL_WEIGHTS = {"collision": 1.0, "boundary": 1.0, "accessibility": 0.5, "object_count": 0.5}
+
+    @classmethod
+    def universal(cls, stats=None, **kwargs) -> "CompositeReward":
+        """The stage-1 composite of the four universal rewards; ``stats`` give the object-count prior."""
+        return cls(dict(cls.UNIVERSAL_WEIGHTS), stats=stats, **kwargs)
+
     @classmethod
     def from_config(cls, config: Mapping, **kwargs) -> "CompositeReward":
         """Build from a config dict, either ``{"weights": {name: w}, "options": {name: {...}}}`` or

@@ -104,3 +104,15 @@ def test_torchrl_gymenv_wraps_it():
     last = rollout["action"][-1]
     n_objects = (last[:, 8:].argmax(-1) != 21).sum().item()
     assert rollout["next", "reward"][-1].item() == n_objects
+
+
+def test_defaults_use_procedural_floors_and_the_universal_composite_reward():
+    env = gym.make_vec("iARCS-Bedroom-v0", num_envs=3, vectorization_mode="vector_entry_point", num_steps=2)
+    env.reset(seed=0)
+    rng = np.random.default_rng(0)
+    for _ in range(2):
+        _, reward, term, _, info = env.step(rng.standard_normal((3, 12, 30)).astype(np.float32))
+    assert term.all()
+    assert set(info["terms"]) == {"collision", "boundary", "accessibility", "object_count"}
+    weights = {"collision": 1.0, "boundary": 1.0, "accessibility": 0.5, "object_count": 0.5}
+    np.testing.assert_allclose(reward, sum(w * info["terms"][k] for k, w in weights.items()), rtol=1e-5)
