@@ -96,9 +96,8 @@ def evaluate_batch(batch: SceneBatch, cell: float = geo.WALK_CELL, agent_radius:
     ground = batch.ground_mask
     overlap = geo.box_overlap_volumes(batch.translations, batch.half_sizes, batch.yaws, ground)
     colliding = (overlap > geo.COLLISION_VOLUME).any(-1) & ground
-    shrunk = geo.footprints(batch.translations.double(), batch.half_sizes.double(), batch.yaws.double(),
-                            shrink=geo.OUT_OF_BOUND_SHRINK)
-    out_area = geo.out_of_floor_area(shrunk, batch.floors, mask)
+    out_area = geo.box_out_of_floor_area(batch.translations, batch.half_sizes, batch.yaws, batch.floors, mask,
+                                         shrink=geo.OUT_OF_BOUND_SHRINK)
     out = (out_area > geo.OUT_OF_BOUND_AREA) & mask
     space = geo.free_space(batch.floors, batch.translations, batch.half_sizes, batch.yaws, ground,
                            cell=cell, radius=agent_radius, reach=True)

@@ -83,8 +83,7 @@ def boundary_reward(batch: SceneBatch, shrink: float = geo.OUT_OF_BOUND_SHRINK,
                     ground_only: bool = False) -> torch.Tensor:
     """+``bonus`` when every footprint stays on the floor, else minus the out-of-bound area (m^2)."""
     mask = batch.ground_mask if ground_only else batch.mask
-    corners = geo.footprints(batch.translations.double(), batch.half_sizes.double(), batch.yaws.double(), shrink)
-    area = geo.out_of_floor_area(corners, batch.floors, mask)
+    area = geo.box_out_of_floor_area(batch.translations, batch.half_sizes, batch.yaws, batch.floors, mask, shrink)
     outside = area > threshold
     total = (area * outside).sum(1)
     return _out(torch.where(outside.any(1), -total, torch.full_like(total, bonus)), batch)
