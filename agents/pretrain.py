@@ -21,7 +21,6 @@ import dataclasses
 import difflib
 import json
 import math
-import random
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path

@@ -46,4 +46,7 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    # run the imported module's main, so that CLIError is the same class the commands raise
+    from experiments.cli import main as _main
+
+    sys.exit(_main())
