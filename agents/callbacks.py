@@ -1,0 +1,181 @@
+"""Training callbacks with the Stable-Baselines surface: subclass :class:`BaseCallback` and override the
+hooks; ``_on_step`` (called after every epoch of rollouts and updates) returns False to stop training."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import TYPE_CHECKING, Sequence
+
+import numpy as np
+import torch
+
+if TYPE_CHECKING:
+    from .ddpo import DDPO
+
+
+class BaseCallback:
+    """Hooks: ``_on_training_start``, ``_on_rollout_end`` (rollout statistics in ``self.locals``),
+    ``_on_step`` (after each epoch; return False to stop) and ``_on_training_end``."""
+
+    def __init__(self, verbose: int = 0):
+        self.verbose = verbose
+        self.model: "DDPO | None" = None
+        self.locals: dict = {}
+
+    def init_callback(self, model: "DDPO") -> None:
+        self.model = model
+
+    @property
+    def num_timesteps(self) -> int:
+        return self.model.num_timesteps
+
+    @property
+    def n_calls(self) -> int:
+        return self.model.epoch
+
+    def on_training_start(self) -> None:
+        self._on_training_start()
+
+    def on_rollout_end(self, stats: dict) -> None:
+        self.locals = stats
+        self._on_rollout_end()
+
+    def on_step(self, stats: dict) -> bool:
+        self.locals = stats
+        return bool(self._on_step())
+
+    def on_training_end(self) -> None:
+        self._on_training_end()
+
+    def _on_training_start(self) -> None: ...
+
+    def _on_rollout_end(self) -> None: ...
+
+    def _on_step(self) -> bool:
+        return True
+
+    def _on_training_end(self) -> None: ...
+
+
+class CallbackList(BaseCallback):
+    def __init__(self, callbacks: Sequence[BaseCallback]):
+        super().__init__()
+        self.callbacks = list(callbacks)
+
+    def init_callback(self, model) -> None:
+        super().init_callback(model)
+        for c in self.callbacks:
+            c.init_callback(model)
+
+    def on_training_start(self) -> None:
+        for c in self.callbacks:
+            c.on_training_start()
+
+    def on_rollout_end(self, stats: dict) -> None:
+        for c in self.callbacks:
+            c.on_rollout_end(stats)
+
+    def on_step(self, stats: dict) -> bool:
+        return all([c.on_step(stats) for c in self.callbacks])  # every callback sees every step
+
+    def on_training_end(self) -> None:
+        for c in self.callbacks:
+            c.on_training_end()
+
+
+def as_callback(callback) -> BaseCallback:
+    """None, a callback, a list of callbacks, or a function ``f(locals, model) -> bool``."""
+    if callback is None:
+        return BaseCallback()
+    if isinstance(callback, BaseCallback):
+        return callback
+    if isinstance(callback, (list, tuple)):
+        return CallbackList([as_callback(c) for c in callback])
+    if callable(callback):
+        return _FunctionCallback(callback)
+    raise TypeError(f"callback must be a BaseCallback, a list of them or a function; got {type(callback).__name__}")
+
+
+class _FunctionCallback(BaseCallback):
+    def __init__(self, fn):
+        super().__init__()
+        self.fn = fn
+
+    def _on_step(self) -> bool:
+        out = self.fn(self.locals, self.model)
+        return True if out is None else bool(out)
+
+
+class CheckpointCallback(BaseCallback):
+    """Save the whole training state (adapter, optimiser, counters, random states) every ``save_freq``
+    epochs to ``save_path`` (atomically: a crash never leaves a half-written checkpoint)."""
+
+    def __init__(self, save_freq: int, save_path: str | Path, verbose: int = 0):
+        super().__init__(verbose)
+        if save_freq < 1:
+            raise ValueError(f"save_freq must be at least 1 epoch, got {save_freq}")
+        self.save_freq = save_freq
+        self.save_path = Path(save_path)
+
+    def _on_step(self) -> bool:
+        if self.model.epoch % self.save_freq == 0:
+            self.model.save(self.save_path)
+            if self.verbose:
+                print(f"checkpoint: epoch {self.model.epoch} -> {self.save_path}")
+        return True
+
+    def _on_training_end(self) -> None:
+        self.model.save(self.save_path)
+
+
+class EvalCallback(BaseCallback):
+    """Every ``eval_freq`` epochs: sample scenes on fixed evaluation floor plans, compute the paper's
+    metrics and the reward, log them (and a grid of top-down renders) to TensorBoard."""
+
+    def __init__(self, floors, eval_freq: int = 5, n_render: int = 16, seed: int = 0, verbose: int = 0):
+        super().__init__(verbose)
+        self.floors = list(floors)
+        self.eval_freq = eval_freq
+        self.n_render = n_render
+        self.seed = seed
+        self.history: list[dict] = []
+
+    def _on_step(self) -> bool:
+        if self.model.epoch % self.eval_freq == 0:
+            self.history.append(self.model.evaluate(self.floors, seed=self.seed, n_render=self.n_render))
+        return True
+
+
+class StopTrainingOnRewardThreshold(BaseCallback):
+    """Stop once the mean rollout reward reaches ``reward_threshold``."""
+
+    def __init__(self, reward_threshold: float, verbose: int = 0):
+        super().__init__(verbose)
+        self.reward_threshold = reward_threshold
+
+    def _on_step(self) -> bool:
+        keep_going = self.locals.get("reward_mean", -np.inf) < self.reward_threshold
+        if not keep_going and self.verbose:
+            print(f"stopping: mean reward {self.locals['reward_mean']:.3f} >= {self.reward_threshold}")
+        return keep_going
+
+
+class StopTrainingOnKL(BaseCallback):
+    """Stop when the policy moved too far in one epoch (approximate KL above ``max_kl``)."""
+
+    def __init__(self, max_kl: float, verbose: int = 0):
+        super().__init__(verbose)
+        self.max_kl = max_kl
+
+    def _on_step(self) -> bool:
+        kl = abs(float(self.locals.get("approx_kl", 0.0)))
+        if kl > self.max_kl and self.verbose:
+            print(f"stopping: approx KL {kl:.2e} > {self.max_kl:.2e}")
+        return kl <= self.max_kl
+
+
+def render_grid_tensor(images: Sequence[np.ndarray], cols: int = 4) -> torch.Tensor:
+    """(3, H, W) uint8 tensor of tiled renders for TensorBoard's add_image."""
+    from iarcs_env.render import image_grid
+
+    return torch.from_numpy(image_grid(list(images), cols=cols)).permute(2, 0, 1)

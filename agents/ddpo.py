@@ -1,0 +1,394 @@
+"""DDPO (Black et al., "Training Diffusion Models with Reinforcement Learning") on the denoising MDP,
+with the Stable-Baselines surface: ``DDPO(policy, env, **hyperparameters).learn(total_timesteps)``,
+``save``/``load``, ``predict`` and callbacks.
+
+One epoch = ``num_batches_per_epoch`` rollout batches of B scenes (the vector env's ``num_envs``), each a
+full DDIM chain of S steps, then ``num_inner_epochs`` passes of updates over the stored transitions.
+Symbols: ``r(x_0)`` terminal reward; advantages ``A = clip((r - mean_f) / std_f, -c, c)`` normalised per
+floor plan f (DDPO's per-prompt statistics) or per batch; importance ratio
+``rho = pi_theta(x_{t-1}|x_t) / pi_old(x_{t-1}|x_t)`` with mean-reduced log-probabilities; DDPO-IS loss
+``mean(max(-A rho, -A clip(rho, 1-eps, 1+eps)))`` computed by TorchRL's ``ClipPPOLoss`` (no critic, no
+entropy bonus). :class:`DDPOSF` swaps in the score-function loss ``-mean(A log pi_theta)``.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from dataclasses import asdict, dataclass, fields
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from tensordict import TensorDict
+
+from .callbacks import as_callback, render_grid_tensor
+from .policy import DiffusionPolicy
+
+
+@dataclass
+class DDPOConfig:
+    """DDPO hyper-parameters (names after kvablack/ddpo-pytorch where they exist)."""
+
+    samples_per_floor: int = 4
+    """Scenes per floor plan in a rollout batch; advantages are normalised within each floor's group."""
+    num_batches_per_epoch: int = 1
+    """Rollout batches of B = num_envs scenes per epoch."""
+    num_inner_epochs: int = 1
+    """Passes over the epoch's transitions."""
+    minibatch_size: int = 8
+    """Scenes per optimiser step (all their sampled timesteps go into that step)."""
+    timestep_fraction: float = 1.0
+    """Fraction of each chain's S timesteps trained on (a random subset per scene)."""
+    learning_rate: float = 3e-4
+    """Adam learning rate of the LoRA parameters."""
+    adam_beta1: float = 0.9
+    adam_beta2: float = 0.999
+    adam_weight_decay: float = 1e-4
+    adam_epsilon: float = 1e-8
+    max_grad_norm: float = 1.0
+    """Gradient-norm clip."""
+    clip_range: float = 1e-4
+    """PPO/DDPO clip range eps of the importance ratio (meaningful with mean-reduced log-probs)."""
+    adv_clip_max: float = 5.0
+    """Advantages are clipped to +-adv_clip_max."""
+    per_floor_advantages: bool = True
+    """Normalise advantages per floor plan (False: per batch)."""
+    kl_coef: float = 0.0
+    """Weight of a KL penalty to the base policy (adapters disabled), against diversity collapse."""
+    seed: int = 0
+    """Seeds floor choice, the policy's noise and the environment."""
+
+    @classmethod
+    def from_dict(cls, values: dict) -> "DDPOConfig":
+        known = {f.name for f in fields(cls)}
+        unknown = sorted(set(values) - known)
+        if unknown:
+            raise ValueError(f"unknown DDPO hyper-parameter(s) {', '.join(unknown)}; known: {', '.join(sorted(known))}")
+        return cls(**values)
+
+
+class DDPO:
+    """DDPO-IS: importance-sampled, clipped policy gradient on the terminal reward.
+
+    Args:
+        policy: the :class:`DiffusionPolicy` (its active LoRA adapter is trained).
+        env: the batched denoising environment (``gym.make_vec(..., vectorization_mode="vector_entry_point")``
+            or :class:`iarcs_env.env.DenoisingVectorEnv`).
+        tensorboard_log: folder for TensorBoard event files (None: no logging).
+        config / **hyperparameters: :class:`DDPOConfig` fields.
+    """
+
+    name = "DDPO-IS"
+
+    def __init__(self, policy: DiffusionPolicy, env, config: DDPOConfig | None = None,
+                 tensorboard_log: str | Path | None = None, verbose: int = 1, **hyperparameters):
+        cfg = config or DDPOConfig()
+        if hyperparameters:
+            cfg = DDPOConfig.from_dict({**asdict(cfg), **hyperparameters})
+        self.config = cfg
+        self.policy = policy
+        self.env = env
+        self.venv = env.unwrapped
+        self.verbose = verbose
+        b = self.venv.num_envs
+        if b % cfg.samples_per_floor:
+            raise ValueError(f"the env's num_envs ({b}) must be a multiple of samples_per_floor ({cfg.samples_per_floor})")
+        if self.venv.num_steps != policy.num_steps:
+            raise ValueError(f"the env runs {self.venv.num_steps} DDIM steps but the policy {policy.num_steps}; "
+                             "make them equal")
+        if self.venv.stats.to_json() != policy.prior.stats.to_json():
+            raise ValueError("the env scales features with other dataset statistics than the prior; "
+                             "create the env with stats=prior.stats")
+        self.optimizer = torch.optim.AdamW(policy.trainable_parameters(), lr=cfg.learning_rate,
+                                           betas=(cfg.adam_beta1, cfg.adam_beta2),
+                                           weight_decay=cfg.adam_weight_decay, eps=cfg.adam_epsilon)
+        self.loss_module = self._make_loss()
+        self.rng = np.random.default_rng(cfg.seed)
+        self.generator = torch.Generator().manual_seed(cfg.seed)
+        self.epoch = 0
+        self.num_timesteps = 0
+        self._env_seeded = False
+        self.tensorboard_log = Path(tensorboard_log) if tensorboard_log else None
+        self._writer = None
+
+    # --- loss ------------------------------------------------------------------------------------------
+    def _make_loss(self):
+        from torchrl.objectives import ClipPPOLoss
+
+        loss = ClipPPOLoss(actor_network=self.policy.actor(), critic_network=None, clip_epsilon=self.config.clip_range,
+                           entropy_bonus=False, normalize_advantage=False, functional=False)
+        loss.set_keys(sample_log_prob="sample_log_prob", action="action", advantage="advantage")
+        return loss
+
+    def policy_loss(self, batch: TensorDict) -> tuple[torch.Tensor, dict[str, float]]:
+        """DDPO-IS loss of a flat batch of transitions (x_t, t, floor, action, sample_log_prob, advantage)."""
+        out = self.loss_module(batch)
+        loss = out["loss_objective"]
+        info = {"clip_fraction": float(out["clip_fraction"]), "approx_kl": float(out["kl_approx"])}
+        return loss, info
+
+    # --- rollouts --------------------------------------------------------------------------------------
+    def collect_rollouts(self) -> TensorDict:
+        """One batch of B full chains: a TensorDict [B, S] of transitions, plus per-scene ``reward``,
+        ``terms`` and ``floor_index`` (non-batched entries in ``td["meta"]``-style keys)."""
+        cfg, venv = self.config, self.venv
+        n_floors = venv.num_envs // cfg.samples_per_floor
+        picked = self.rng.choice(len(venv.floors), n_floors, replace=n_floors > len(venv.floors))
+        floor_idx = np.repeat(picked, cfg.samples_per_floor)
+        seed = None if self._env_seeded else cfg.seed
+        self._env_seeded = True
+        obs, _ = self.env.reset(seed=seed, options={"floor_indices": floor_idx})
+        steps = []
+        for _ in range(venv.num_steps):
+            x_t = torch.from_numpy(obs["x_t"])
+            t = torch.from_numpy(obs["t"])
+            floor = torch.from_numpy(obs["floor"])
+            action, log_prob = self.policy.act(x_t, t, floor, generator=self.generator)
+            steps.append({"x_t": x_t, "t": t, "floor": floor, "action": action, "sample_log_prob": log_prob})
+            obs, reward, terminated, _, info = self.env.step(action.numpy())
+        if not terminated.all():
+            raise RuntimeError("the environment did not terminate after num_steps steps")
+        td = TensorDict({k: torch.stack([s[k] for s in steps], 1) for k in steps[0]}, batch_size=[venv.num_envs, venv.num_steps])
+        td["reward"] = torch.as_tensor(reward, dtype=torch.float32)[:, None].expand(-1, venv.num_steps)
+        td["floor_index"] = torch.as_tensor(floor_idx)[:, None].expand(-1, venv.num_steps)
+        self._last_terms = info.get("terms", {})
+        self._last_scene = info.get("scene")
+        self.num_timesteps += venv.num_envs * venv.num_steps
+        return td
+
+    def compute_advantages(self, rewards: torch.Tensor, floor_index: torch.Tensor) -> torch.Tensor:
+        """A = (r - mean) / (std + 1e-8) per floor plan (or per batch), clipped to +-adv_clip_max."""
+        r = rewards.double()
+        adv = torch.zeros_like(r)
+        groups = floor_index.unique() if self.config.per_floor_advantages else [None]
+        for g in groups:
+            m = floor_index == g if g is not None else torch.ones_like(r, dtype=torch.bool)
+            sel = r[m]
+            std = sel.std(unbiased=False) if sel.numel() > 1 else sel.new_tensor(0.0)
+            adv[m] = (sel - sel.mean()) / (std + 1e-8)
+        c = self.config.adv_clip_max
+        return adv.clamp(-c, c).float()
+
+    # --- updates ---------------------------------------------------------------------------------------
+    def train(self, rollout: TensorDict) -> dict[str, float]:
+        """``num_inner_epochs`` passes of minibatch updates over a rollout [B', S]."""
+        cfg = self.config
+        b = rollout.batch_size[0]
+        steps = self.stochastic_steps()
+        k = max(1, int(round(cfg.timestep_fraction * len(steps))))
+        infos = []
+        self.policy.model.eval()
+        for _ in range(cfg.num_inner_epochs):
+            perm = torch.randperm(b, generator=self.generator)
+            for start in range(0, b, cfg.minibatch_size):
+                rows = perm[start:start + cfg.minibatch_size]
+                # a random subset of each scene's timesteps (all of them when timestep_fraction = 1)
+                cols = torch.stack([steps[torch.randperm(len(steps), generator=self.generator)[:k]] for _ in rows])
+                mb = rollout[rows[:, None], cols].reshape(-1)
+                loss, info = self.policy_loss(mb)
+                if cfg.kl_coef > 0:
+                    kl = self.kl_to_base(mb)
+                    loss = loss + cfg.kl_coef * kl
+                    info["kl_to_base"] = float(kl)
+                self.optimizer.zero_grad(set_to_none=True)
+                loss.backward()
+                info["grad_norm"] = float(torch.nn.utils.clip_grad_norm_(self.policy.trainable_parameters(),
+                                                                         cfg.max_grad_norm))
+                self.optimizer.step()
+                info["loss"] = float(loss)
+                infos.append(info)
+        return {key: float(np.mean([i[key] for i in infos])) for key in infos[0]}
+
+    def stochastic_steps(self) -> torch.Tensor:
+        """Indices of the chain's steps that sample. With eta = 1 the DDIM step onto x_0 (previous timestep
+        < 0, alpha-bar = 1) has sigma = 0: its action is deterministic, its log-probability only exists
+        through the 1e-6 floor, and its ratio gradient ((a - mu) / sigma^2) would swamp every other step's.
+        It carries no policy-gradient signal, so it is left out of the updates."""
+        t = torch.as_tensor(self.venv.timesteps)
+        t_prev = t - self.policy.schedule.num_train_timesteps // self.venv.num_steps
+        std = self.policy.schedule.ddim_std(t, t_prev, self.policy.eta, torch.zeros(1))
+        keep = torch.nonzero(std.reshape(-1) > 1e-4).reshape(-1)
+        return keep if len(keep) else torch.arange(len(t))
+
+    def kl_to_base(self, batch: TensorDict) -> torch.Tensor:
+        """KL(pi_theta || pi_base) of the step Gaussians (equal variances): mean ||mu - mu_base||^2 / (2 sigma^2)."""
+        mean, std = self.policy(batch["x_t"], batch["t"], batch["floor"])
+        with torch.no_grad(), self.policy.base_policy():
+            base, _ = self.policy(batch["x_t"], batch["t"], batch["floor"])
+        return ((mean - base) ** 2 / (2 * std**2)).flatten(1).mean(1).mean()
+
+    # --- the SB3 surface ------------------------------------------------------------------------------
+    def learn(self, total_timesteps: int, callback=None, progress_bar: bool = False,
+              reset_num_timesteps: bool = False) -> "DDPO":
+        """Train until ``num_timesteps`` (environment transitions: scenes x DDIM steps) reaches
+        ``total_timesteps``. Continues from the current counters (resume after :meth:`load`)."""
+        from tqdm import tqdm
+
+        if reset_num_timesteps:
+            self.num_timesteps, self.epoch = 0, 0
+        cb = as_callback(callback)
+        cb.init_callback(self)
+        cb.on_training_start()
+        self._log_hparams()
+        bar = tqdm(total=total_timesteps, initial=min(self.num_timesteps, total_timesteps), unit="step",
+                   desc=self.name, disable=not progress_bar)
+        while self.num_timesteps < total_timesteps:
+            t0 = time.perf_counter()
+            before = self.num_timesteps
+            rollouts = [self.collect_rollouts() for _ in range(self.config.num_batches_per_epoch)]
+            rollout = torch.cat(rollouts, 0)
+            rewards = rollout["reward"][:, 0]
+            rollout["advantage"] = self.compute_advantages(rewards, rollout["floor_index"][:, 0])[:, None, None] \
+                .expand(-1, rollout.batch_size[1], 1).clone()
+            t1 = time.perf_counter()
+            stats = {"reward_mean": float(rewards.mean()), "reward_std": float(rewards.std()),
+                     **{f"reward_{k}": float(np.mean(v)) for k, v in self._last_terms.items()}}
+            cb.on_rollout_end(stats)
+            stats.update(self.train(rollout))
+            self.epoch += 1
+            stats.update({"time_rollout": t1 - t0, "time_update": time.perf_counter() - t1,
+                          "learning_rate": self.optimizer.param_groups[0]["lr"]})
+            self._log(stats)
+            bar.update(self.num_timesteps - before)
+            bar.set_postfix(reward=f"{stats['reward_mean']:.3f}", kl=f"{stats['approx_kl']:.1e}")
+            if not cb.on_step(stats):
+                break
+        bar.close()
+        cb.on_training_end()
+        if self._writer:
+            self._writer.flush()
+        return self
+
+    def predict(self, observation: dict, deterministic: bool = False) -> tuple[np.ndarray, None]:
+        """The next state x_{t-1} for an observation (batched or not), as numpy, SB3-style ``(action, None)``."""
+        x = torch.as_tensor(observation["x_t"], dtype=torch.float32)
+        single = x.ndim == 2
+        t = torch.as_tensor(observation["t"]).reshape(-1)
+        f = torch.as_tensor(observation["floor"], dtype=torch.float32)
+        if single:
+            x, f = x[None], f[None]
+        action, _ = self.policy.act(x, t, f, generator=self.generator, deterministic=deterministic)
+        action = action.numpy()
+        return (action[0] if single else action), None
+
+    @torch.no_grad()
+    def evaluate(self, floors, seed: int = 0, n_render: int = 16) -> dict[str, float]:
+        """Sample scenes on ``floors`` with the current adapter; metrics and reward, logged to TensorBoard."""
+        from iarcs_env.env import evaluate_reward
+        from iarcs_env.metrics import evaluate_layouts
+        from iarcs_env.render import render_layout
+
+        scenes = self.policy.sample(floors, generator=torch.Generator().manual_seed(seed))
+        layouts = scenes.to_layouts()
+        metrics = {k: float(v) for k, v in evaluate_layouts(layouts).items()
+                   if k in ("Col_obj", "Col_scene", "R_out", "R_reach", "R_walkable")}
+        total, terms = evaluate_reward(self.venv.reward_fn, scenes)
+        metrics["reward"] = float(total.mean())
+        metrics.update({f"reward_{k}": float(v.mean()) for k, v in terms.items()})
+        if self.writer:
+            for k, v in metrics.items():
+                self.writer.add_scalar(f"eval/{k}", v, self.num_timesteps)
+            if n_render:
+                grid = render_grid_tensor([render_layout(l) for l in layouts[:n_render]])
+                self.writer.add_image("eval/scenes", grid, self.num_timesteps)
+        return metrics
+
+    # --- logging ---------------------------------------------------------------------------------------
+    @property
+    def writer(self):
+        if self._writer is None and self.tensorboard_log is not None:
+            from torch.utils.tensorboard import SummaryWriter
+
+            self._writer = SummaryWriter(str(self.tensorboard_log))
+        return self._writer
+
+    def _log_hparams(self) -> None:
+        if self.writer and self.epoch == 0:
+            text = "\n".join(f"    {k}: {v}" for k, v in {"algorithm": self.name, "adapter": self.policy.adapter,
+                                                           "num_envs": self.venv.num_envs,
+                                                           "num_steps": self.venv.num_steps,
+                                                           **asdict(self.config)}.items())
+            self.writer.add_text("hyperparameters", text, 0)
+
+    def _log(self, stats: dict) -> None:
+        if self.verbose >= 2:
+            print(f"epoch {self.epoch}: " + ", ".join(f"{k}={v:.4g}" for k, v in stats.items()))
+        if not self.writer:
+            return
+        groups = {"reward": "rollout", "clip_fraction": "train", "approx_kl": "train", "loss": "train",
+                  "grad_norm": "train", "kl_to_base": "train", "learning_rate": "train", "time": "time"}
+        for k, v in stats.items():
+            group = next((g for p, g in groups.items() if k.startswith(p)), "train")
+            self.writer.add_scalar(f"{group}/{k}", v, self.num_timesteps)
+
+    # --- persistence -----------------------------------------------------------------------------------
+    def save(self, path: str | Path) -> Path:
+        """Everything needed to resume: the adapter (peft format), optimiser, counters and random states."""
+        path = Path(path)
+        tmp = path.with_name(path.name + ".tmp")
+        tmp.mkdir(parents=True, exist_ok=True)
+        self.policy.save_adapter(tmp / "adapter")
+        state = {"algorithm": self.name, "config": asdict(self.config), "epoch": self.epoch,
+                 "num_timesteps": self.num_timesteps, "adapter": self.policy.adapter,
+                 "optimizer": self.optimizer.state_dict(), "rng": self.rng.bit_generator.state,
+                 "generator": self.generator.get_state(), "env_rng": self.venv.np_random.bit_generator.state,
+                 "env_seeded": self._env_seeded}
+        torch.save(state, tmp / "trainer_state.pt")
+        (tmp / "trainer.json").write_text(json.dumps({k: state[k] for k in ("algorithm", "config", "epoch",
+                                                                            "num_timesteps", "adapter")}, indent=1))
+        old = path.with_name(path.name + ".old")
+        if path.exists():
+            path.rename(old)
+        tmp.rename(path)
+        if old.exists():
+            import shutil
+
+            shutil.rmtree(old)
+        return path
+
+    @classmethod
+    def load(cls, path: str | Path, policy: DiffusionPolicy, env, **kwargs) -> "DDPO":
+        """Resume from :meth:`save`: loads the adapter into ``policy`` and restores the trainer's state."""
+        path = Path(path)
+        if not (path / "trainer_state.pt").exists():
+            raise FileNotFoundError(f"no training checkpoint in {path} (trainer_state.pt missing)")
+        state = torch.load(path / "trainer_state.pt", weights_only=False)
+        name = state["adapter"]
+        policy.load_adapter(path / "adapter" / name, name)
+        algo = ALGORITHMS.get(state["algorithm"], cls)
+        model = algo(policy, env, config=DDPOConfig.from_dict(state["config"]), **kwargs)
+        model.optimizer.load_state_dict(state["optimizer"])
+        model.epoch, model.num_timesteps = state["epoch"], state["num_timesteps"]
+        model.rng.bit_generator.state = state["rng"]
+        model.generator.set_state(state["generator"])
+        model.venv.np_random.bit_generator.state = state["env_rng"]
+        model._env_seeded = state["env_seeded"]
+        return model
+
+
+class DDPOSF(DDPO):
+    """DDPO-SF: the score-function (REINFORCE) estimator, ``loss = -mean(A * log pi_theta(x_{t-1}|x_t))``,
+    on-policy (use num_inner_epochs = 1). Same interface as :class:`DDPO`."""
+
+    name = "DDPO-SF"
+
+    def policy_loss(self, batch: TensorDict) -> tuple[torch.Tensor, dict[str, float]]:
+        log_prob = self.policy.log_prob(batch["x_t"], batch["t"], batch["floor"], batch["action"])
+        adv = batch["advantage"].reshape(-1)
+        loss = -(adv * log_prob).mean()
+        approx_kl = float((batch["sample_log_prob"] - log_prob.detach()).mean())
+        return loss, {"clip_fraction": 0.0, "approx_kl": approx_kl}
+
+
+ALGORITHMS: dict[str, type[DDPO]] = {"DDPO-IS": DDPO, "DDPO-SF": DDPOSF}
+
+
+def get_algorithm(name: str) -> type[DDPO]:
+    """``ddpo`` / ``ddpo-is`` or ``ddpo-sf`` (case-insensitive)."""
+    key = name.upper().replace("_", "-")
+    key = {"DDPO": "DDPO-IS"}.get(key, key)
+    if key not in ALGORITHMS:
+        raise ValueError(f"unknown algorithm {name!r}; choose one of: ddpo (= ddpo-is), ddpo-sf")
+    return ALGORITHMS[key]

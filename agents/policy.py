@@ -1,0 +1,169 @@
+"""The diffusion policy of the denoising MDP (DDPO): one DDIM step of the prior's denoiser as a Gaussian,
+
+    pi_theta(x_{t-1} | x_t, t, floor) = N(mu_theta(x_t, t, floor), sigma_t^2 I),
+
+with LoRA adapters (peft; r = 16, alpha = 16 on the attention's q/k/v/out projections) as the trainable
+parameters theta. Each task gets its own named adapter, saved and loaded in peft's own format
+(``adapter_config.json`` + ``adapter_model.safetensors``). The log-probability is the MEAN of per-element
+Gaussian log-densities over a scene (DESIGN.md), shared with :mod:`iarcs_env.schedule`.
+"""
+
+from __future__ import annotations
+
+import contextlib
+from pathlib import Path
+from typing import Sequence
+
+import numpy as np
+import torch
+from peft import LoraConfig, PeftModel, get_peft_model
+from torch import nn
+
+from iarcs_env.floorplan import FloorPlan
+from iarcs_env.scene import SceneBatch
+from iarcs_env.schedule import MIN_STD, gaussian_log_prob
+
+from .denoiser import ScenePrior
+
+LORA_TARGETS = ["q_proj", "k_proj", "v_proj", "out_proj"]
+
+
+class MeanNormal(torch.distributions.Normal):
+    """Diagonal Gaussian over a scene (..., N, F) whose ``log_prob`` is the mean over the scene's elements
+    (the DDPO convention), so TorchRL's PPO ratio is exp(mean log-density difference)."""
+
+    def log_prob(self, value: torch.Tensor) -> torch.Tensor:
+        return super().log_prob(value).flatten(-2).mean(-1)
+
+    def entropy(self) -> torch.Tensor:
+        return super().entropy().flatten(-2).mean(-1)
+
+    @property
+    def deterministic_sample(self) -> torch.Tensor:
+        return self.mean
+
+
+class DiffusionPolicy(nn.Module):
+    """The prior's denoiser (frozen) with LoRA adapters, seen as the Gaussian policy of the MDP.
+
+    Args:
+        prior: the pretrained scene prior (its denoiser is wrapped in place).
+        adapter: name of the first adapter (one per task, e.g. "stage1", "reach_1m").
+        num_steps: DDIM steps of an episode (must match the environment's).
+        eta: DDIM stochasticity; 1 gives the DDPM-like variance DDPO needs.
+        lora_r, lora_alpha: LoRA rank and scale.
+    """
+
+    def __init__(self, prior: ScenePrior, adapter: str = "stage1", num_steps: int = 20, eta: float = 1.0,
+                 lora_r: int = 16, lora_alpha: int = 16):
+        super().__init__()
+        self.prior = prior
+        self.num_steps = num_steps
+        self.eta = eta
+        self.lora_config = LoraConfig(r=lora_r, lora_alpha=lora_alpha, target_modules=LORA_TARGETS, lora_dropout=0.0)
+        for p in prior.denoiser.parameters():
+            p.requires_grad_(False)
+        self.model: PeftModel = get_peft_model(prior.denoiser, self.lora_config, adapter_name=adapter)
+        self.model.eval()  # no dropout: sampling and training log-probs must agree
+        self.schedule = prior.schedule
+
+    # --- adapters ---------------------------------------------------------------------------------------
+    @property
+    def adapter(self) -> str:
+        return self.model.active_adapter
+
+    def add_adapter(self, name: str, init_from: str | None = None) -> None:
+        """A new adapter (zero-initialised B, so the policy starts as the prior), or a copy of ``init_from``."""
+        self.model.add_adapter(name, self.lora_config)
+        if init_from is not None:
+            src = {k: v for k, v in self.model.state_dict().items() if f".{init_from}." in k}
+            self.model.load_state_dict({k.replace(f".{init_from}.", f".{name}."): v for k, v in src.items()},
+                                       strict=False)
+        self.set_adapter(name)
+
+    def set_adapter(self, name: str) -> None:
+        self.model.set_adapter(name)
+        self.model.eval()
+
+    def save_adapter(self, folder: str | Path, name: str | None = None) -> Path:
+        """Write one adapter in peft's format to ``folder/<name>/``."""
+        name = name or self.adapter
+        self.model.save_pretrained(str(folder), selected_adapters=[name])
+        return Path(folder) / name if name != "default" else Path(folder)
+
+    def load_adapter(self, folder: str | Path, name: str | None = None) -> str:
+        """Load an adapter saved by :meth:`save_adapter` (``folder`` is the adapter's own folder)."""
+        folder = Path(folder)
+        if not (folder / "adapter_config.json").exists():
+            raise FileNotFoundError(f"no peft adapter in {folder} (adapter_config.json missing)")
+        name = name or folder.name
+        if name in self.model.peft_config:
+            self.model.delete_adapter(name)
+        self.model.load_adapter(str(folder), adapter_name=name, is_trainable=True)
+        self.set_adapter(name)
+        return name
+
+    def base_policy(self):
+        """Context in which the policy is the prior (adapters disabled), e.g. for a KL penalty."""
+        return self.model.disable_adapter()
+
+    def trainable_parameters(self) -> list[nn.Parameter]:
+        return [p for p in self.model.parameters() if p.requires_grad]
+
+    # --- the Gaussian -----------------------------------------------------------------------------------
+    def forward(self, x_t: torch.Tensor, t: torch.Tensor, floor: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """mu_theta and sigma_t of pi(x_{t-1} | x_t, t, floor); shapes (B, N, F) (sigma broadcast)."""
+        t = torch.as_tensor(t, device=x_t.device).long().reshape(-1)
+        if t.numel() == 1:
+            t = t.expand(x_t.shape[0])
+        eps = self.model(x_t, t, floor)
+        t_prev = t - self.schedule.num_train_timesteps // self.num_steps
+        # passing prev_sample makes step() compute the Gaussian without drawing from it
+        out = self.schedule.step(eps, t, x_t, eta=self.eta, prev_sample=x_t, prev_timestep=t_prev)
+        return out.mean, out.std.expand_as(x_t)
+
+    def log_prob(self, x_t, t, floor, x_prev) -> torch.Tensor:
+        """log pi(x_prev | x_t, t, floor), mean-reduced per scene: (B,)."""
+        mean, std = self(x_t, t, floor)
+        return gaussian_log_prob(x_prev, mean, std)
+
+    @torch.no_grad()
+    def act(self, x_t, t, floor, generator: torch.Generator | None = None, deterministic: bool = False):
+        """Sample x_{t-1} (the mean when ``deterministic``) and its log-probability."""
+        mean, std = self(x_t, t, floor)
+        if deterministic or self.eta == 0:
+            x_prev = mean
+        else:
+            x_prev = mean + std * torch.randn(mean.shape, generator=generator, dtype=mean.dtype, device=mean.device)
+        return x_prev, gaussian_log_prob(x_prev, mean, std.clamp(min=MIN_STD))
+
+    @torch.no_grad()
+    def sample(self, floors: Sequence[FloorPlan], generator: torch.Generator | None = None,
+               batch_size: int = 64) -> SceneBatch:
+        """Scenes for the given floor plans with the active adapter (a whole DDIM rollout)."""
+        return self.prior.sample(floors, num_steps=self.num_steps, eta=self.eta, generator=generator,
+                                 batch_size=batch_size)
+
+    def actor(self):
+        """A TorchRL ``ProbabilisticActor`` view: reads ``x_t``, ``t``, ``floor``; writes ``action`` and its
+        mean-reduced ``sample_log_prob``."""
+        from tensordict.nn import TensorDictModule
+        from torchrl.modules import ProbabilisticActor
+
+        module = TensorDictModule(_Gaussian(self), in_keys=["x_t", "t", "floor"], out_keys=["loc", "scale"])
+        return ProbabilisticActor(module, in_keys=["loc", "scale"], out_keys=["action"],
+                                  distribution_class=MeanNormal, return_log_prob=True,
+                                  log_prob_key="sample_log_prob")
+
+
+class _Gaussian(nn.Module):
+    """(x_t, t, floor) -> (loc, scale) for TensorDictModule (t may carry a trailing dim of 1)."""
+
+    def __init__(self, policy: DiffusionPolicy):
+        super().__init__()
+        self.policy = policy
+
+    def forward(self, x_t, t, floor):
+        batch = x_t.shape[:-2]
+        mean, std = self.policy(x_t.reshape(-1, *x_t.shape[-2:]), t.reshape(-1), floor.reshape(-1, *floor.shape[-2:]))
+        return mean.reshape(*batch, *mean.shape[-2:]), std.reshape(*batch, *std.shape[-2:])

@@ -1,0 +1,178 @@
+"""DDPO on the denoising MDP with a tiny prior: the loss, learning, persistence, resuming, callbacks."""
+
+import gymnasium as gym
+import numpy as np
+import pytest
+import torch
+from tensordict import TensorDict
+
+import iarcs_env  # noqa: F401
+from agents.callbacks import CheckpointCallback, EvalCallback, StopTrainingOnRewardThreshold
+from agents.ddpo import DDPO, DDPOSF, get_algorithm
+from agents.denoiser import ScenePrior
+from agents.policy import DiffusionPolicy
+from iarcs_env.datasets.procedural import generate_layouts
+from iarcs_env.env import default_stats
+
+STEPS = 5
+FLOORS = [l.centred().floor for l in generate_layouts("bedroom", 8, seed=5)]
+
+
+def tiny_prior(seed=0):
+    """A tiny untrained prior with its zero-initialised (adaLN-Zero) layers perturbed, so gradients flow."""
+    torch.manual_seed(seed)
+    prior = ScenePrior.create("bedroom", default_stats("bedroom"), "tiny")
+    g = torch.Generator().manual_seed(seed)
+    with torch.no_grad():
+        for p in prior.denoiser.parameters():
+            if p.dim() == 2 and float(p.abs().sum()) == 0:
+                p.copy_(torch.randn(p.shape, generator=g) * 0.05)
+    return prior
+
+
+def mean_x(scene):
+    """Reward: mean x position of the objects (pushes furniture towards +x)."""
+    m = scene.mask.float()
+    v = (scene.translations[..., 0] * m).sum(1) / m.sum(1).clamp(min=1)
+    return v, {"x": v}
+
+
+def make_env(num_envs=8, reward=mean_x):
+    return gym.make_vec("iARCS-Bedroom-v0", num_envs=num_envs, vectorization_mode="vector_entry_point",
+                        floors=FLOORS, stats=default_stats("bedroom"), reward=reward, num_steps=STEPS)
+
+
+def make_model(algo=DDPO, seed=0, **kw):
+    policy = DiffusionPolicy(tiny_prior(seed), num_steps=STEPS)
+    params = {"learning_rate": 1e-3, "minibatch_size": 4, "clip_range": 0.2, "samples_per_floor": 4, "seed": seed}
+    params.update(kw)
+    return algo(policy, make_env(), verbose=0, **params)
+
+
+def adapter_weights(model):
+    return {k: v.clone() for k, v in model.policy.model.state_dict().items() if "lora_" in k}
+
+
+def test_lora_targets_the_attention_projections_only():
+    policy = DiffusionPolicy(tiny_prior(), num_steps=STEPS)
+    names = [n for n, p in policy.model.named_parameters() if p.requires_grad]
+    assert names and all("lora_" in n for n in names)
+    assert {n.split(".lora_")[0].rsplit(".", 1)[-1] for n in names} == {"q_proj", "k_proj", "v_proj", "out_proj"}
+    assert policy.model.peft_config["stage1"].r == 16 and policy.model.peft_config["stage1"].lora_alpha == 16
+
+
+@pytest.mark.parametrize("algo", [DDPO, DDPOSF])
+def test_loss_with_ratio_one(algo):
+    model = make_model(algo)
+    x, f = torch.randn(6, 12, 30), model.venv._floor_features[:1].repeat(6, 0)
+    t = torch.full((6, 1), 800)
+    f = torch.from_numpy(f)
+    action, log_prob = model.policy.act(x, t, f)
+    adv = torch.randn(6, 1)
+    batch = TensorDict({"x_t": x, "t": t, "floor": f, "action": action, "sample_log_prob": log_prob,
+                        "advantage": adv}, batch_size=[6])
+    loss, info = model.policy_loss(batch)
+    if algo is DDPO:  # ratio 1: loss = mean(max(-A, -A)) = -mean(A), nothing clipped
+        assert float(loss) == pytest.approx(float(-adv.mean()), abs=1e-6)
+        assert info["clip_fraction"] == 0 and abs(info["approx_kl"]) < 1e-6
+    else:  # score function: -mean(A log pi)
+        assert float(loss) == pytest.approx(float(-(adv[:, 0] * log_prob).mean()), rel=1e-5)
+
+
+def test_advantages_are_normalised_per_floor_and_clipped():
+    model = make_model(adv_clip_max=1.5)
+    r = torch.tensor([1.0, 2.0, 3.0, 10.0, 10.0, 10.0, 10.0, 50.0])
+    floor = torch.tensor([0, 0, 0, 1, 1, 1, 1, 1])
+    adv = model.compute_advantages(r, floor)
+    np.testing.assert_allclose(adv[:3], [-1.2247, 0.0, 1.2247], atol=1e-4)
+    assert adv[7] == pytest.approx(1.5) and adv[3] == pytest.approx(-0.5)
+
+
+@pytest.mark.parametrize("algo", [DDPO, DDPOSF])
+def test_updates_move_the_policy_towards_high_advantage_actions(algo):
+    """After a few updates on one rollout, the policy puts more probability on the chains that scored
+    above average and less on the others: sum_i A_i (log pi_new - log pi_old)(a_i | s_i) > 0.""" 
+    model = make_model(algo, learning_rate=3e-3, minibatch_size=8, num_inner_epochs=4)
+    rollout = model.collect_rollouts()
+    rollout["advantage"] = model.compute_advantages(rollout["reward"][:, 0], rollout["floor_index"][:, 0])[:, None, None] \
+        .expand(-1, STEPS, 1).clone()
+    steps = model.stochastic_steps()
+    assert steps.tolist() == list(range(STEPS - 1))  # the deterministic step onto x_0 is not trained
+    flat = rollout[:, steps].reshape(-1)
+    before = model.policy.log_prob(flat["x_t"], flat["t"], flat["floor"], flat["action"]).detach()
+    torch.testing.assert_close(before, flat["sample_log_prob"])  # rollout and training log-probs agree
+    stats = model.train(rollout)
+    after = model.policy.log_prob(flat["x_t"], flat["t"], flat["floor"], flat["action"]).detach()
+    gain = (flat["advantage"][:, 0] * (after - before)).sum()
+    assert gain > 0, gain
+    assert stats["grad_norm"] > 0
+
+
+def test_ddpo_sf_swaps_in_through_the_same_interface():
+    assert get_algorithm("ddpo") is DDPO and get_algorithm("DDPO-SF") is DDPOSF
+    with pytest.raises(ValueError, match="unknown algorithm"):
+        get_algorithm("ppo2")
+    model = make_model(DDPOSF, learning_rate=3e-4)
+    w0 = adapter_weights(model)
+    model.learn(8 * STEPS * 2)
+    assert model.epoch == 2 and any(not torch.equal(w0[k], v) for k, v in adapter_weights(model).items())
+
+
+def test_save_load_round_trip_gives_identical_samples(tmp_path):
+    model = make_model()
+    model.learn(8 * STEPS * 2)
+    folder = model.policy.save_adapter(tmp_path / "adapters")
+    assert (folder / "adapter_config.json").exists() and (folder / "adapter_model.safetensors").exists()
+    other = DiffusionPolicy(tiny_prior(), num_steps=STEPS, adapter="scratch")
+    other.load_adapter(folder)
+    g = lambda: torch.Generator().manual_seed(9)  # noqa: E731
+    a, b = model.policy.sample(FLOORS, generator=g()), other.sample(FLOORS, generator=g())
+    assert torch.equal(a.labels, b.labels) and torch.allclose(a.translations, b.translations)
+    with other.base_policy():  # adapters disabled: the prior, which samples differently
+        c = other.sample(FLOORS, generator=g())
+    assert not torch.allclose(a.translations, c.translations)
+
+
+def test_resume_after_interruption_matches_an_uninterrupted_run(tmp_path):
+    full = make_model()
+    full.learn(8 * STEPS * 4)
+
+    first = make_model()
+    first.learn(8 * STEPS * 2, callback=CheckpointCallback(1, tmp_path / "ckpt"))
+    del first  # "killed": only the checkpoint survives
+    resumed = DDPO.load(tmp_path / "ckpt", DiffusionPolicy(tiny_prior(), num_steps=STEPS), make_env(), verbose=0)
+    assert resumed.epoch == 2 and resumed.num_timesteps == 8 * STEPS * 2
+    resumed.learn(8 * STEPS * 4)
+    w_full, w_res = adapter_weights(full), adapter_weights(resumed)
+    assert w_full.keys() == w_res.keys()
+    for k in w_full:
+        torch.testing.assert_close(w_res[k], w_full[k])
+
+
+def test_callbacks_stop_and_log_to_tensorboard(tmp_path):
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    model = make_model()
+    model.tensorboard_log = tmp_path / "tb"
+    seen = []
+    model.learn(8 * STEPS * 10, callback=[StopTrainingOnRewardThreshold(-1e9),
+                                          EvalCallback(FLOORS[:4], eval_freq=1, n_render=4),
+                                          lambda loc, m: seen.append(loc["reward_mean"])])
+    assert model.epoch == 1 and len(seen) == 1  # stopped after the first epoch
+    acc = EventAccumulator(str(tmp_path / "tb"), size_guidance={"images": 4}).Reload()
+    scalars = acc.Tags()["scalars"]
+    for tag in ("rollout/reward_mean", "rollout/reward_x", "train/approx_kl", "train/clip_fraction",
+                "train/learning_rate", "eval/Col_obj", "eval/R_out"):
+        assert tag in scalars, tag
+    assert acc.Scalars("rollout/reward_mean")[0].value == pytest.approx(seen[0])
+    assert "eval/scenes" in acc.Tags()["images"] and acc.Tags()["tensors"]  # render grid, hyper-parameters text
+
+
+def test_mismatched_env_and_policy_are_clear_errors():
+    policy = DiffusionPolicy(tiny_prior(), num_steps=STEPS + 1)
+    with pytest.raises(ValueError, match="DDIM steps"):
+        DDPO(policy, make_env(), verbose=0)
+    with pytest.raises(ValueError, match="multiple of samples_per_floor"):
+        DDPO(DiffusionPolicy(tiny_prior(), num_steps=STEPS), make_env(num_envs=6), samples_per_floor=4, verbose=0)
+    with pytest.raises(ValueError, match="unknown DDPO hyper-parameter"):
+        DDPO(DiffusionPolicy(tiny_prior(), num_steps=STEPS), make_env(), learning_rat=1, verbose=0)
