@@ -3,6 +3,7 @@ hooks; ``_on_step`` (called after every epoch of rollouts and updates) returns F
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 from typing import TYPE_CHECKING, Sequence
 
@@ -130,19 +131,28 @@ class CheckpointCallback(BaseCallback):
 
 class EvalCallback(BaseCallback):
     """Every ``eval_freq`` epochs: sample scenes on fixed evaluation floor plans, compute the paper's
-    metrics and the reward, log them (and a grid of top-down renders) to TensorBoard."""
+    metrics and the reward, log them (and a grid of top-down renders) to TensorBoard, and append them to
+    ``log_path`` (JSON lines) when given."""
 
-    def __init__(self, floors, eval_freq: int = 5, n_render: int = 16, seed: int = 0, verbose: int = 0):
+    def __init__(self, floors, eval_freq: int = 5, n_render: int = 16, seed: int = 0,
+                 log_path: str | Path | None = None, verbose: int = 0):
         super().__init__(verbose)
         self.floors = list(floors)
         self.eval_freq = eval_freq
         self.n_render = n_render
         self.seed = seed
+        self.log_path = Path(log_path) if log_path else None
         self.history: list[dict] = []
 
     def _on_step(self) -> bool:
         if self.model.epoch % self.eval_freq == 0:
-            self.history.append(self.model.evaluate(self.floors, seed=self.seed, n_render=self.n_render))
+            metrics = self.model.evaluate(self.floors, seed=self.seed, n_render=self.n_render)
+            self.history.append(metrics)
+            if self.log_path:
+                with open(self.log_path, "a") as f:
+                    f.write(json.dumps({"epoch": self.model.epoch, "num_timesteps": self.num_timesteps, **metrics}) + "\n")
+            if self.verbose:
+                print(f"eval at epoch {self.model.epoch}: " + ", ".join(f"{k}={v:.4g}" for k, v in metrics.items()))
         return True
 
 
@@ -178,4 +188,4 @@ def render_grid_tensor(images: Sequence[np.ndarray], cols: int = 4) -> torch.Ten
     """(3, H, W) uint8 tensor of tiled renders for TensorBoard's add_image."""
     from iarcs_env.render import image_grid
 
-    return torch.from_numpy(image_grid(list(images), cols=cols)).permute(2, 0, 1)
+    return torch.from_numpy(np.array(image_grid(list(images), cols=cols))).permute(2, 0, 1)

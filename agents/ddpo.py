@@ -197,7 +197,7 @@ class DDPO:
                 info["grad_norm"] = float(torch.nn.utils.clip_grad_norm_(self.policy.trainable_parameters(),
                                                                          cfg.max_grad_norm))
                 self.optimizer.step()
-                info["loss"] = float(loss)
+                info["loss"] = loss.item()
                 infos.append(info)
         return {key: float(np.mean([i[key] for i in infos])) for key in infos[0]}
 

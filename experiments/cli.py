@@ -11,6 +11,7 @@ import sys
 #: Modules whose ``register(subparsers)`` adds sub-commands, in the order --help lists them.
 COMMAND_MODULES = [
     "experiments.commands.data",
+    "experiments.commands.train",
     "experiments.commands.demo",
     "experiments.commands.evaluate",
     "experiments.commands.prior",

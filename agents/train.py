@@ -1,0 +1,169 @@
+"""RL fine-tuning runs (stage 1: universal rewards) from a YAML config: builds the prior, the LoRA policy,
+the batched environment, the reward and the algorithm, trains with checkpoints that resume, evaluates and
+logs to TensorBoard, and saves the adapter in peft's format.
+
+Run folder: ``config.yaml``, ``checkpoint/`` (resumable state), ``adapters/<name>/`` (the trained adapter),
+``tb/`` (TensorBoard), ``eval.jsonl`` (evaluation metrics per evaluation).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import torch
+import yaml
+
+from .config import dataclass_from_dict, load_yaml_config
+
+CHECKPOINT_DIR = "checkpoint"
+ADAPTERS_DIR = "adapters"
+
+
+@dataclass
+class TrainConfig:
+    """An RL fine-tuning run."""
+
+    room: str = "bedroom"
+    """Room type: bedroom, livingroom or diningroom."""
+    prior: str = "default"
+    """Scene prior: ``default`` (the one shipped for the room) or a path to a prior .pt."""
+    adapter: str = "stage1"
+    """Name of the LoRA adapter to train (one per task)."""
+    init_adapter: str = ""
+    """Optional adapter folder (peft format) to start from, e.g. a stage-1 adapter for a stage-2 task."""
+    algorithm: str = "ddpo"
+    """ddpo (= ddpo-is) or ddpo-sf."""
+    num_envs: int = 32
+    """B: scenes per rollout batch (the vector env's size)."""
+    num_steps: int = 20
+    """DDIM steps per episode."""
+    eta: float = 1.0
+    """DDIM eta of the policy (1: DDPM-like variance)."""
+    floors: str = "procedural"
+    """Training floor plans: procedural, or a layout file / ATISS folder whose floors are used."""
+    num_floors: int = 512
+    """How many training floor plans (procedural ones are generated with ``floor_seed``)."""
+    floor_seed: int = 1000
+    """Seed of procedural training floors (the prior was trained on seed 0)."""
+    eval_floors: int = 64
+    """Held-out procedural floor plans for evaluations during training."""
+    eval_seed: int = 12345
+    """Seed of the evaluation floors (the same as ``iarcs_env.env.default_floors``)."""
+    reward: dict = field(default_factory=lambda: {"collision": 1.0, "boundary": 1.0, "accessibility": 0.5,
+                                                   "object_count": 0.5})
+    """Composite reward: {name: weight} or {name: {weight: w, option: value}} (see rewards.composite)."""
+    epochs: int = 40
+    """Training epochs (each: num_batches_per_epoch rollout batches, then updates)."""
+    ddpo: dict = field(default_factory=dict)
+    """DDPO hyper-parameters (agents.ddpo.DDPOConfig fields)."""
+    eval_every: int = 5
+    """Evaluate (metrics + render grid to TensorBoard) every this many epochs."""
+    checkpoint_every: int = 1
+    """Save the resumable state every this many epochs."""
+    seed: int = 0
+    """Seeds everything (floor choice, policy noise, environment)."""
+    num_threads: int = 0
+    """torch threads (0: torch's default)."""
+    out: str = "out/train/stage1_bedroom"
+    """Run folder."""
+
+
+def load_train_config(path, **overrides) -> TrainConfig:
+    return load_yaml_config(TrainConfig, path, **overrides)
+
+
+def build_prior(cfg: TrainConfig):
+    from .denoiser import ScenePrior
+
+    if cfg.prior == "default":
+        return ScenePrior.load_default(cfg.room)
+    return ScenePrior.load(cfg.prior)
+
+
+def training_floors(cfg: TrainConfig):
+    from iarcs_env.datasets import load_layouts
+    from iarcs_env.datasets.procedural import generate_layouts
+
+    if cfg.floors.lower() in ("procedural", "synthetic"):
+        layouts = generate_layouts(cfg.room, cfg.num_floors, seed=cfg.floor_seed)
+    else:
+        layouts = load_layouts(cfg.floors, cfg.room)[: cfg.num_floors]
+    if not layouts:
+        raise ValueError(f"no {cfg.room} floor plans in {cfg.floors}")
+    return [lay.centred().floor for lay in layouts]
+
+
+def build(cfg: TrainConfig, tensorboard_log: Path | None = None):
+    """(algorithm, policy, env) for a config; the algorithm is fresh (see :func:`run` for resuming)."""
+    import gymnasium as gym
+
+    import iarcs_env  # noqa: F401  (registers the environments)
+    from rewards.composite import CompositeReward
+
+    from .ddpo import get_algorithm
+    from .policy import DiffusionPolicy
+
+    prior = build_prior(cfg)
+    policy = DiffusionPolicy(prior, adapter=cfg.adapter, num_steps=cfg.num_steps, eta=cfg.eta)
+    if cfg.init_adapter:
+        src = policy.load_adapter(cfg.init_adapter, name="init")
+        policy.add_adapter(cfg.adapter, init_from=src)
+    reward = CompositeReward.from_config(cfg.reward, stats=prior.stats)
+    env = gym.make_vec(f"iARCS-{prior.spec.gym_name}-v0", num_envs=cfg.num_envs,
+                       vectorization_mode="vector_entry_point", floors=training_floors(cfg), stats=prior.stats,
+                       reward=reward, num_steps=cfg.num_steps)
+    algo = get_algorithm(cfg.algorithm)(policy, env, tensorboard_log=tensorboard_log, seed=cfg.seed, **cfg.ddpo)
+    return algo, policy, env
+
+
+def run(cfg: TrainConfig, progress: bool = True, log=print):
+    """Train (resuming ``cfg.out/checkpoint`` when it exists); returns the algorithm."""
+    from iarcs_env.env import default_floors
+
+    from .callbacks import CheckpointCallback, EvalCallback
+    from .ddpo import DDPO
+
+    if cfg.num_threads:
+        torch.set_num_threads(cfg.num_threads)
+    out = Path(cfg.out)
+    out.mkdir(parents=True, exist_ok=True)
+    ckpt = out / CHECKPOINT_DIR
+    saved = out / "config.yaml"
+    if ckpt.exists() and saved.exists():
+        before = yaml.safe_load(saved.read_text())
+        now = dataclasses.asdict(cfg)
+        changed = [k for k in now if k not in ("epochs", "out", "eval_every", "checkpoint_every")
+                   and before.get(k) != now[k]]
+        if changed:
+            raise ValueError(f"{out} holds a run with other settings ({', '.join(changed)}); use another out folder")
+    saved.write_text(yaml.safe_dump(dataclasses.asdict(cfg), sort_keys=False))
+    algo, policy, env = build(cfg, tensorboard_log=out / "tb")
+    if (ckpt / "trainer_state.pt").exists():
+        algo = DDPO.load(ckpt, policy, env, tensorboard_log=out / "tb")
+        log(f"resuming {out} at epoch {algo.epoch}")
+    eval_floors = default_floors(cfg.room, count=cfg.eval_floors, seed=cfg.eval_seed)
+    evaluator = EvalCallback(eval_floors, eval_freq=cfg.eval_every, log_path=out / "eval.jsonl", verbose=1)
+    total = cfg.epochs * cfg.num_envs * cfg.num_steps * algo.config.num_batches_per_epoch
+    algo.learn(total, callback=[CheckpointCallback(cfg.checkpoint_every, ckpt), evaluator], progress_bar=progress)
+    policy.save_adapter(out / ADAPTERS_DIR)
+    log(f"adapter: {out / ADAPTERS_DIR / cfg.adapter} (peft format); TensorBoard: {out / 'tb'}")
+    return algo
+
+
+def load_trained_policy(run_dir: str | Path):
+    """The policy of a finished (or interrupted) run folder: its prior with its adapter active."""
+    from .policy import DiffusionPolicy
+
+    run_dir = Path(run_dir)
+    if not (run_dir / "config.yaml").exists():
+        raise FileNotFoundError(f"{run_dir} is not a training run folder (config.yaml missing)")
+    cfg = dataclass_from_dict(TrainConfig, yaml.safe_load((run_dir / "config.yaml").read_text()), str(run_dir))
+    policy = DiffusionPolicy(build_prior(cfg), adapter="scratch", num_steps=cfg.num_steps, eta=cfg.eta)
+    for folder in (run_dir / ADAPTERS_DIR / cfg.adapter, run_dir / CHECKPOINT_DIR / "adapter" / cfg.adapter):
+        if (folder / "adapter_config.json").exists():
+            policy.load_adapter(folder, cfg.adapter)
+            return policy, cfg
+    raise FileNotFoundError(f"no adapter {cfg.adapter!r} in {run_dir} (train it first)")

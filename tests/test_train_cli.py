@@ -1,0 +1,78 @@
+"""`iarcs train`: a run from a YAML config, its run folder, resuming after a kill, sampling with the adapter."""
+
+import json
+import signal
+import subprocess
+import sys
+import time
+
+import pytest
+import torch
+import yaml
+
+from agents.denoiser import ScenePrior
+from experiments.cli import main
+from iarcs_env.env import default_stats
+from conftest import REPO
+
+
+@pytest.fixture
+def tiny_run_config(tmp_path):
+    torch.manual_seed(0)
+    prior = ScenePrior.create("bedroom", default_stats("bedroom"), "tiny")
+    prior.save(tmp_path / "prior.pt")
+    cfg = {"prior": str(tmp_path / "prior.pt"), "num_envs": 8, "num_steps": 4, "num_floors": 8, "eval_floors": 4,
+           "epochs": 2, "eval_every": 1, "ddpo": {"samples_per_floor": 4, "minibatch_size": 8},
+           "out": str(tmp_path / "run")}
+    path = tmp_path / "train.yaml"
+    path.write_text(yaml.safe_dump(cfg))
+    return path
+
+
+def test_train_writes_a_complete_run_folder_and_resumes(tiny_run_config, tmp_path, capsys):
+    assert main(["train", "--config", str(tiny_run_config)]) == 0
+    run = tmp_path / "run"
+    assert (run / "adapters" / "stage1" / "adapter_config.json").exists()
+    assert json.loads((run / "checkpoint" / "trainer.json").read_text())["epoch"] == 2
+    evals = [json.loads(l) for l in (run / "eval.jsonl").read_text().splitlines()]
+    assert [e["epoch"] for e in evals] == [1, 2] and 0 <= evals[0]["Col_obj"] <= 1
+    assert any(p.name.startswith("events.out.tfevents") for p in (run / "tb").iterdir())
+    capsys.readouterr()
+    assert main(["train", "--config", str(tiny_run_config), "--epochs", "3"]) == 0
+    assert "resuming" in capsys.readouterr().out
+    assert json.loads((run / "checkpoint" / "trainer.json").read_text())["epoch"] == 3
+
+    out = tmp_path / "samples.json"
+    assert main(["sample", "--checkpoint", str(run), "--num-scenes", "3", "--steps", "4", "--out", str(out)]) == 0
+    assert len(json.loads(out.read_text())["scenes"]) == 3
+
+
+def test_a_killed_run_resumes_from_its_last_checkpoint(tiny_run_config, tmp_path):
+    cfg = yaml.safe_load(tiny_run_config.read_text())
+    cfg["epochs"], cfg["eval_every"] = 100000, 100000
+    tiny_run_config.write_text(yaml.safe_dump(cfg))
+    cmd = [sys.executable, "-m", "experiments.cli", "train", "--config", str(tiny_run_config)]
+    proc = subprocess.Popen(cmd, cwd=REPO, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    state = tmp_path / "run" / "checkpoint" / "trainer.json"
+    deadline = time.time() + 120
+    try:
+        while time.time() < deadline and not (state.exists() and json.loads(state.read_text())["epoch"] >= 3):
+            time.sleep(0.05)
+    finally:
+        proc.send_signal(signal.SIGKILL)
+        proc.wait()
+    killed_at = json.loads(state.read_text())["epoch"]
+    assert killed_at >= 3
+    done = subprocess.run(cmd + ["--epochs", str(killed_at + 2)], cwd=REPO, capture_output=True, text=True)
+    assert done.returncode == 0, done.stderr[-2000:]
+    assert f"resuming {tmp_path / 'run'} at epoch {killed_at}" in done.stdout
+    assert json.loads(state.read_text())["epoch"] == killed_at + 2
+
+
+def test_bad_train_configs_are_clear(tmp_path, capsys):
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("epoch: 3\n")
+    assert main(["train", "--config", str(bad)]) == 2
+    assert "unknown key 'epoch' (did you mean 'epochs'?)" in capsys.readouterr().err
+    assert main(["train", "--config", str(tmp_path / "none.yaml")]) == 2
+    assert "no config file" in capsys.readouterr().err
