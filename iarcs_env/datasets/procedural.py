@@ -1026,18 +1026,7 @@ def _livingroom(room: _Room):
         room.on_wall("chinese_chair", _sz(rng, "chinese_chair"))
     # lamps: over the dining table (one or two), over the coffee table or the living zone
     if table is not None:
-        t = room.objs[table]
-        v = rng.random()
-        if v < 0.6:
-            room.lamp("pendant_lamp", t.x, t.z)
-        elif v < 0.7 and t.w > 1.3:
-            rx, rz = t.right
-            for s in (-1, 1):
-                room.lamp("pendant_lamp", round(t.x + s * rx * t.w / 4, 3), round(t.z + s * rz * t.w / 4, 3))
-        elif v < 0.85:
-            size = _sz(rng, "pendant_lamp:linear")
-            i = room.lamp("pendant_lamp", t.x, t.z, size=size)
-            room.objs[i].yaw = t.yaw
+        _lamps_over_table(room, table, (0.6, 0.7, 0.85))
     if rng.random() < 0.7:
         ct = [o for o in room.objs if o.label == "coffee_table"]
         if ct:
@@ -1051,6 +1040,23 @@ def _livingroom(room: _Room):
         room.lamp("ceiling_lamp", round(x, 3), round(z, 3))
     if rng.random() < 0.12:  # an entrance or corridor lamp
         room.lamp("pendant_lamp", round(rng.uniform(-room.W / 3, room.W / 3), 3), round(rng.uniform(-room.D / 3, room.D / 3), 3))
+
+
+def _lamps_over_table(room: _Room, table: int, thresholds: tuple[float, float, float]) -> None:
+    """Pendant lamps over a dining table: one (below thresholds[0]), two along a long table (below [1]),
+    one linear lamp aligned with the table (below [2]), else none."""
+    rng = room.rng
+    t = room.objs[table]
+    v = rng.random()
+    if v < thresholds[0]:
+        room.lamp("pendant_lamp", t.x, t.z)
+    elif v < thresholds[1] and t.w > 1.3:
+        rx, rz = t.right
+        for s in (-1, 1):
+            room.lamp("pendant_lamp", round(t.x + s * rx * t.w / 4, 3), round(t.z + s * rz * t.w / 4, 3))
+    elif v < thresholds[2]:
+        i = room.lamp("pendant_lamp", t.x, t.z, size=_sz(rng, "pendant_lamp:linear"))
+        room.objs[i].yaw = t.yaw
 
 
 def _diningroom(room: _Room):
@@ -1078,17 +1084,7 @@ def _diningroom(room: _Room):
         for _ in range(1 + int(rng.integers(2))):
             room.on_wall("stool", _sz(rng, "stool:bar"))
     if table is not None:
-        t = room.objs[table]
-        v = rng.random()
-        if v < 0.55:
-            room.lamp("pendant_lamp", t.x, t.z)
-        elif v < 0.75 and t.w > 1.3:
-            rx, rz = t.right
-            for s in (-1, 1):
-                room.lamp("pendant_lamp", round(t.x + s * rx * t.w / 4, 3), round(t.z + s * rz * t.w / 4, 3))
-        elif v < 0.9:
-            i = room.lamp("pendant_lamp", t.x, t.z, size=_sz(rng, "pendant_lamp:linear"))
-            room.objs[i].yaw = t.yaw
+        _lamps_over_table(room, table, (0.55, 0.75, 0.9))
     if rng.random() < 0.25:
         room.lamp("ceiling_lamp", round(room.poly.centroid.x, 3), round(room.poly.centroid.y, 3))
 
