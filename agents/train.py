@@ -53,7 +53,7 @@ class TrainConfig:
     eval_seed: int = 12345
     """Seed of the evaluation floors (the same as ``iarcs_env.env.default_floors``)."""
     reward: dict = field(default_factory=lambda: {"collision": 1.0, "boundary": 1.0, "accessibility": 0.5,
-                                                   "object_count": 0.5})
+                                                   "object_count": {"weight": 1.0, "mode": "log_prob"}})
     """Composite reward: {name: weight} or {name: {weight: w, option: value}} (see rewards.composite)."""
     epochs: int = 40
     """Training epochs (each: num_batches_per_epoch rollout batches, then updates)."""

@@ -53,7 +53,12 @@ class CompositeReward:
 
     @classmethod
     def universal(cls, stats=None, **kwargs) -> "CompositeReward":
-        """The stage-1 composite of the four universal rewards; ``stats`` give the object-count prior."""
+        """The stage-1 composite of the four universal rewards; ``stats`` give the object-count prior.
+
+        The object-count term is per scene (the training log-probability of its count): the batch-level KL
+        gives every scene of a batch the same value, so after per-floor advantage normalisation it carries
+        no signal, and DDPO then learns to empty rooms (which never collide nor leave the floor)."""
+        kwargs.setdefault("object_count", {"mode": "log_prob"})
         return cls(dict(cls.UNIVERSAL_WEIGHTS), stats=stats, **kwargs)
 
     @classmethod
