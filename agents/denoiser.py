@@ -9,16 +9,36 @@ Network, for x_t of shape (B, N, 8 + K) (N object slots; geometry 8 = translatio
   permutation-equivariant over slots;
 * floor encoder: a PointNet over the 256 boundary points with inward normals (x, z, nx, nz): per-point
   MLP 4 -> 64 -> 64 -> 512, max-pool over points, then 512 -> 64 (widths [4, 64, 64, 512, 64]); the 64-d
-  floor feature is mapped to ``floor_tokens`` context tokens;
-* timestep: sinusoidal embedding -> MLP; it drives adaptive layer norm (shift / scale / gate per
-  sub-layer, zero-initialised as in DiT's adaLN-Zero);
+  global floor feature is mapped to ``floor_tokens`` context tokens;
+* per-point floor tokens (``floor_point_tokens`` > 0): the boundary points subsampled evenly along the
+  boundary (every P / floor_point_tokens-th point; repeated when P is smaller) keep their 512-d
+  per-point PointNet features (which encode the point's position and normal), projected to width d and
+  added to a projection of the global feature; cross-attention then sees where the walls are, not just a
+  pooled summary, so each slot can attend to the walls near it;
+* wall features (``floor_slot_features``): each slot's noisy (x, z) measured against the subsampled boundary
+  points: offset to the nearest point, its inward normal and the signed distance along that normal, and
+  the same for the nearest point of another wall (normal > 60 degrees away): 10 numbers through an MLP
+  added to the slot embedding. Without them the network had to infer wall distances from dot-product
+  attention, and trained priors ignored the floor entirely (the same loss with shuffled floors);
+* timestep: sinusoidal embedding -> MLP; plus, with ``floor_adaln``, a linear map of the global floor
+  feature, so the adaptive layer norm of every sub-layer is modulated by the room shape; it drives
+  shift / scale / gate per sub-layer (zero-initialised as in DiT's adaLN-Zero);
 * ``num_layers`` blocks of self-attention over the slots, cross-attention to the floor tokens and a GELU
   feed-forward; attention uses explicit ``q_proj``, ``k_proj``, ``v_proj``, ``out_proj`` ``nn.Linear``
   layers (LoRA targets exactly these; ``nn.MultiheadAttention`` would bypass LoRA on its fast path);
 * output: epsilon of shape (B, N, 8 + K).
 
+:meth:`SceneDenoiser.encode_floor` returns one tensor (B, rows, d): row 0 is the floor's adaLN vector (with
+``floor_adaln``), then the cross-attention tokens, then (with ``floor_slot_features``) the subsampled raw
+boundary points packed into ceil(4 K / d) rows; one tensor, so that it can be cached over a rollout and
+concatenated for classifier-free guidance.
+
 Unconditional predictions (classifier-free guidance, condition dropout in training) use an all-zero floor
 input, which no real floor produces (its normals are unit vectors).
+
+The dataclass defaults of the three floor options (``floor_point_tokens=0``, ``floor_adaln=False``,
+``floor_slot_features=False``) are the original design, so checkpoints written before these fields
+existed load unchanged; the ``paper`` and ``small`` presets switch all three on.
 """
 
 from __future__ import annotations
@@ -42,7 +62,7 @@ from iarcs_env.stats import DatasetStats
 
 GEOMETRY_DIM = 8
 CHECKPOINT_FORMAT = "iarcs-scene-prior"
-CHECKPOINT_VERSION = 1
+CHECKPOINT_VERSION = 1  # new DenoiserConfig fields default to the old architecture: still version 1
 CHECKPOINT_DIR = Path(__file__).resolve().parent / "checkpoints"
 
 
@@ -64,32 +84,50 @@ class DenoiserConfig:
     """PointNet widths: per-point MLP up to the second-to-last width, max-pool, then a linear map to the
     last width (the floor feature)."""
     floor_tokens: int = 4
-    """Context tokens the floor feature is mapped to for cross-attention (1 makes the attention weights
-    trivially 1)."""
+    """Context tokens the global floor feature is mapped to for cross-attention (1 makes the attention
+    weights trivially 1 when there are no point tokens)."""
+    floor_point_tokens: int = 0
+    """Per-point floor tokens for cross-attention: the boundary points' per-point PointNet features,
+    subsampled evenly along the boundary to this many (0: none, the original design)."""
+    floor_adaln: bool = False
+    """Add a linear map of the global floor feature to the timestep embedding that drives the adaptive
+    layer norm (False: the original design)."""
+    floor_slot_features: bool = False
+    """Give every slot its (noisy) position relative to the walls: the offset to the nearest of the
+    ``floor_point_tokens`` boundary points, that point's inward normal and the signed distance along it,
+    and the same for the nearest point of another wall (normals more than 60 degrees apart), through an
+    MLP added to the slot embedding (needs ``floor_point_tokens`` > 0; False: the original design)."""
 
     def __post_init__(self):
         self.pointnet = tuple(int(v) for v in self.pointnet)
         if self.width % self.num_heads:
             raise ValueError(f"width {self.width} is not divisible by num_heads {self.num_heads}")
+        if self.floor_tokens < 0 or self.floor_point_tokens < 0 or self.floor_tokens + self.floor_point_tokens < 1:
+            raise ValueError(f"need at least one floor token; got floor_tokens={self.floor_tokens}, "
+                             f"floor_point_tokens={self.floor_point_tokens}")
+        if self.floor_slot_features and not self.floor_point_tokens:
+            raise ValueError("floor_slot_features needs floor_point_tokens > 0 (the boundary points it measures)")
         if len(self.pointnet) < 3 or self.pointnet[0] != 4:
             raise ValueError(f"pointnet widths must start with 4 (x, z, nx, nz) and have >= 3 entries; "
                              f"got {list(self.pointnet)}")
 
     @classmethod
     def paper(cls) -> "DenoiserConfig":
-        """iARCS / MiDiffusion size: 8 layers, width 512, 4 heads, feed-forward 2048, dropout 0.1."""
-        return cls()
+        """iARCS / MiDiffusion size: 8 layers, width 512, 4 heads, feed-forward 2048, dropout 0.1, PointNet
+        [4, 64, 64, 512, 64]; floor conditioning through adaLN and 64 per-point tokens as in ``small``."""
+        return cls(floor_point_tokens=64, floor_adaln=True, floor_slot_features=True)
 
     @classmethod
     def small(cls) -> "DenoiserConfig":
         """CPU default: a 20-step DDIM rollout of 32 bedrooms in about a second on 2 cores."""
-        return cls(num_layers=6, width=128, num_heads=4, ff_dim=512, dropout=0.0)
+        return cls(num_layers=6, width=128, num_heads=4, ff_dim=512, dropout=0.0, floor_point_tokens=64,
+                   floor_adaln=True, floor_slot_features=True)
 
     @classmethod
     def tiny(cls) -> "DenoiserConfig":
         """For tests only."""
         return cls(num_layers=1, width=32, num_heads=2, ff_dim=64, dropout=0.0, pointnet=(4, 16, 32, 16),
-                   floor_tokens=2)
+                   floor_tokens=2, floor_point_tokens=8, floor_adaln=True, floor_slot_features=True)
 
     @classmethod
     def from_preset(cls, name: str, **overrides) -> "DenoiserConfig":
@@ -161,7 +199,8 @@ class DenoiserBlock(nn.Module):
 
 
 class PointNetEncoder(nn.Module):
-    """PointNet over (B, P, 4) boundary points: per-point MLP, max-pool, linear -> (B, widths[-1])."""
+    """PointNet over (B, P, 4) boundary points: per-point MLP, max-pool, linear -> (B, widths[-1]).
+    :meth:`encode` also returns the per-point features (B, P, widths[-2])."""
 
     def __init__(self, widths: Sequence[int]):
         super().__init__()
@@ -172,8 +211,21 @@ class PointNetEncoder(nn.Module):
         self.point_mlp = nn.Sequential(*layers)
         self.head = nn.Linear(widths[-2], widths[-1])
 
+    def encode(self, points: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        per_point = self.point_mlp(points)
+        return self.head(per_point.max(dim=1).values), per_point
+
     def forward(self, points: torch.Tensor) -> torch.Tensor:
-        return self.head(self.point_mlp(points).max(dim=1).values)
+        return self.encode(points)[0]
+
+
+WALL_FEATURES = 10  # SceneDenoiser.wall_features: (offset 2, normal 2, signed distance 1) x 2 walls
+
+
+def point_subset(num_points: int, k: int, device=None) -> torch.Tensor:
+    """Indices of ``k`` points spread evenly over ``num_points`` boundary points (every
+    num_points / k-th; points repeat when there are fewer than ``k``)."""
+    return torch.arange(k, device=device) * num_points // k
 
 
 def timestep_embedding(t: torch.Tensor, dim: int, max_period: float = 10000.0) -> torch.Tensor:
@@ -202,8 +254,16 @@ class SceneDenoiser(nn.Module):
         self.class_embed = nn.Linear(k, d, bias=False)  # = learnable class embeddings weighted by the one-hot
         self.time_embed = nn.Sequential(nn.Linear(d, d), nn.SiLU(), nn.Linear(d, d))
         self.floor_encoder = PointNetEncoder(config.pointnet)
-        self.floor_proj = nn.Linear(config.pointnet[-1], config.floor_tokens * d)
+        g = config.pointnet[-1]
+        self.floor_proj = nn.Linear(g, config.floor_tokens * d) if config.floor_tokens else None
+        if config.floor_point_tokens:
+            self.floor_point_proj = nn.Linear(config.pointnet[-2], d)
+            self.floor_point_global = nn.Linear(g, d)
         self.floor_norm = nn.LayerNorm(d)
+        if config.floor_adaln:
+            self.floor_adaln = nn.Linear(g, d)
+        if config.floor_slot_features:
+            self.wall_embed = nn.Sequential(nn.Linear(WALL_FEATURES, d), nn.GELU(), nn.Linear(d, d))
         self.blocks = nn.ModuleList(DenoiserBlock(config) for _ in range(config.num_layers))
         self.final_norm = nn.LayerNorm(d, elementwise_affine=False, eps=1e-6)
         self.final_ada = nn.Sequential(nn.SiLU(), nn.Linear(d, 2 * d))
@@ -213,10 +273,45 @@ class SceneDenoiser(nn.Module):
             nn.init.zeros_(lin.bias)
 
     def encode_floor(self, floor: torch.Tensor) -> torch.Tensor:
-        """Floor condition (B, P, 4) -> context tokens (B, floor_tokens, width). Zeros = unconditional."""
-        f = self.floor_encoder(floor)
-        tokens = self.floor_proj(f).view(f.shape[0], self.config.floor_tokens, self.config.width)
-        return self.floor_norm(tokens)
+        """Floor condition (B, P, 4) -> context (B, [1 +] floor_tokens + point tokens, width): with
+        ``floor_adaln`` row 0 is the floor's adaLN vector, the other rows the cross-attention tokens.
+        Zeros = unconditional."""
+        cfg = self.config
+        f, per_point = self.floor_encoder.encode(floor)
+        b, p = per_point.shape[:2]
+        tokens = []
+        if self.floor_proj is not None:
+            tokens.append(self.floor_proj(f).view(b, cfg.floor_tokens, cfg.width))
+        if cfg.floor_point_tokens:
+            idx = point_subset(p, cfg.floor_point_tokens, floor.device)
+            tokens.append(self.floor_point_proj(per_point[:, idx]) + self.floor_point_global(f)[:, None])
+        ctx = self.floor_norm(torch.cat(tokens, 1))
+        if cfg.floor_adaln:
+            ctx = torch.cat([self.floor_adaln(f)[:, None], ctx], 1)
+        if cfg.floor_slot_features:  # the raw (x, z, nx, nz) of the subset, packed into rows of width d
+            raw = floor[:, point_subset(p, cfg.floor_point_tokens, floor.device)].reshape(b, -1)
+            rows = -(-raw.shape[1] // cfg.width)
+            ctx = torch.cat([ctx, F.pad(raw, (0, rows * cfg.width - raw.shape[1])).view(b, rows, cfg.width)], 1)
+        return ctx
+
+    def wall_features(self, x: torch.Tensor, points: torch.Tensor) -> torch.Tensor:
+        """(B, N, WALL_FEATURES): each slot's (x, z) relative to the nearest boundary point q1 (offset,
+        q1's inward normal, signed distance along it) and to the nearest point q2 whose normal differs from
+        q1's by more than 60 degrees (another wall; q1 again when there is none)."""
+        p = x[..., [0, 2]]  # scaled translation x, z: the same scaling as the floor points' x, z
+        q, n = points[..., :2], points[..., 2:]
+        d2 = (p[:, :, None] - q[:, None]).pow(2).sum(-1)  # (B, N, K)
+        j1 = d2.argmin(-1)
+        n1 = torch.gather(n, 1, j1[..., None].expand(-1, -1, 2))
+        other = (n1[:, :, None] * n[:, None]).sum(-1) < 0.5
+        j2 = torch.where(other.any(-1), d2.masked_fill(~other, float("inf")).argmin(-1), j1)
+        feats = []
+        for j in (j1, j2):
+            qj = torch.gather(q, 1, j[..., None].expand(-1, -1, 2))
+            nj = torch.gather(n, 1, j[..., None].expand(-1, -1, 2))
+            off = p - qj
+            feats += [off, nj, (off * nj).sum(-1, keepdim=True)]
+        return torch.cat(feats, -1)
 
     def forward(self, x: torch.Tensor, t: torch.Tensor, floor: torch.Tensor | None = None,
                 floor_context: torch.Tensor | None = None) -> torch.Tensor:
@@ -228,11 +323,20 @@ class SceneDenoiser(nn.Module):
         if t.ndim == 0:
             t = t.expand(b)
         if floor_context is None:
-            if floor is None:
+            if floor is None:  # an all-zero floor (every subset of its points is the same)
                 floor = x.new_zeros(b, 1, 4)
             floor_context = self.encode_floor(floor)
         h = self.geometry_embed(x[..., :GEOMETRY_DIM]) + self.class_embed(x[..., GEOMETRY_DIM:])
         temb = self.time_embed(timestep_embedding(t, self.config.width))
+        if self.config.floor_adaln:
+            temb = temb + floor_context[:, 0]
+            floor_context = floor_context[:, 1:]
+        if self.config.floor_slot_features:
+            k = self.config.floor_point_tokens
+            rows = -(-4 * k // self.config.width)
+            points = floor_context[:, -rows:].reshape(b, -1)[:, :4 * k].view(b, k, 4)
+            floor_context = floor_context[:, :-rows]
+            h = h + self.wall_embed(self.wall_features(x, points))
         for block in self.blocks:
             h = block(h, temb, floor_context)
         shift, scale = self.final_ada(temb).chunk(2, dim=-1)
@@ -245,7 +349,8 @@ class SceneDenoiser(nn.Module):
         """Multiply-adds x 2 of one forward pass per scene (linear layers and attention products), without
         the floor encoder unless ``include_floor`` (a rollout encodes the floor once)."""
         c = self.config
-        d, n, m, k = c.width, num_slots, c.floor_tokens, self.feature_dim
+        d, n, k = c.width, num_slots, self.feature_dim
+        m = c.floor_tokens + min(c.floor_point_tokens, num_points)
         macs = n * (GEOMETRY_DIM * d + d * d + (k - GEOMETRY_DIM) * d)  # slot embedding
         macs += 2 * d * d  # time MLP
         per_block = (
@@ -255,9 +360,13 @@ class SceneDenoiser(nn.Module):
             + 2 * n * d * c.ff_dim  # feed-forward
         )
         macs += c.num_layers * per_block + 2 * d * d + n * d * k
+        if c.floor_slot_features:
+            macs += n * (WALL_FEATURES * d + d * d)
         if include_floor:
             w = list(c.pointnet)
-            macs += num_points * sum(a * b for a, b in zip(w[:-2], w[1:-1])) + w[-2] * w[-1] + w[-1] * m * d
+            macs += num_points * sum(a * b for a, b in zip(w[:-2], w[1:-1])) + w[-2] * w[-1]
+            macs += w[-1] * c.floor_tokens * d + min(c.floor_point_tokens, num_points) * (w[-2] + w[-1]) * d
+            macs += w[-1] * d * int(c.floor_adaln)
         return 2 * macs
 
 
@@ -383,7 +492,12 @@ class ScenePrior:
         cfg = DenoiserConfig(**{k: v for k, v in state["denoiser_config"].items() if k in known})
         stats = DatasetStats.from_json(state["stats"], state["room_type"])
         net = SceneDenoiser(cfg, int(state["feature_dim"]))
-        net.load_state_dict(state["state_dict"])
+        try:
+            net.load_state_dict(state["state_dict"])
+        except RuntimeError as err:
+            raise ValueError(f"{where}: its weights do not fit the denoiser its denoiser_config describes "
+                             f"({cfg}); it was written by an incompatible version of iARCS: retrain it, or "
+                             f"load it with the iARCS version that wrote it ({err})") from None
         net.eval()
         sched = NoiseSchedule(ScheduleConfig(**state.get("schedule_config", {})))
         return cls(net, stats, sched, state.get("meta"))

@@ -60,7 +60,7 @@ class PretrainConfig:
     """Denoiser size preset: small (CPU) or paper (8 layers, width 512)."""
     model: dict = field(default_factory=dict)
     """Overrides of the preset's fields (num_layers, width, num_heads, ff_dim, dropout, pointnet,
-    floor_tokens)."""
+    floor_tokens, floor_point_tokens, floor_adaln, floor_slot_features)."""
     steps: int = 6000
     """Total optimizer steps of the run (a resumed run continues up to this)."""
     batch_size: int = 128

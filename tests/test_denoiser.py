@@ -64,9 +64,66 @@ def test_permutation_equivariance_over_slots():
         eps = net(x, t, floor)
         assert eps.abs().max() > 1e-3
         assert torch.allclose(net(x[:, perm], t, floor), eps[:, perm], atol=1e-5)
-        # the floor points are a set too (max-pool)
-        pts = torch.randperm(256)
-        assert torch.allclose(net(x, t, floor[:, pts]), eps, atol=1e-5)
+        # the point tokens are every 32nd boundary point (tiny: 8 of 256) and attention ignores their order:
+        # starting the boundary 32 points later gives the same tokens
+        assert torch.allclose(net(x, t, floor.roll(32, dims=1)), eps, atol=1e-5)
+        assert not torch.allclose(net(x, t, floor.roll(1, dims=1)), eps, atol=1e-5)
+
+
+def test_global_floor_feature_is_a_set_function_without_point_tokens():
+    cfg = DenoiserConfig.from_preset("tiny", floor_point_tokens=0, floor_slot_features=False)
+    net = _randomised(SceneDenoiser(cfg, BEDROOM.feature_dim))
+    x, t, floor = torch.randn(2, 12, BEDROOM.feature_dim), torch.tensor([3, 700]), torch.randn(2, 256, 4)
+    with torch.no_grad():  # max-pooled PointNet feature: any order of the points
+        assert torch.allclose(net(x, t, floor[:, torch.randperm(256)]), net(x, t, floor), atol=1e-5)
+
+
+@pytest.mark.parametrize("points, adaln, walls", [(0, False, False), (0, True, False), (8, False, False),
+                                                  (8, True, False), (8, False, True), (8, True, True),
+                                                  (300, True, True)])
+def test_floor_conditioning_options(points, adaln, walls):
+    """Global tokens, per-point tokens, the floor in adaLN and the slots' wall features each work alone and
+    together; the context is [adaLN row] + tokens + [raw boundary points packed in rows of width d]."""
+    cfg = DenoiserConfig.from_preset("tiny", floor_point_tokens=points, floor_adaln=adaln,
+                                     floor_slot_features=walls)
+    net = _randomised(SceneDenoiser(cfg, BEDROOM.feature_dim))
+    floor = torch.randn(2, 256, 4)
+    ctx = net.encode_floor(floor)
+    raw_rows = -(-4 * points // cfg.width) if walls else 0
+    assert ctx.shape == (2, int(adaln) + cfg.floor_tokens + points + raw_rows, cfg.width)
+    x, t = torch.randn(2, 12, BEDROOM.feature_dim), torch.tensor([5, 50])
+    with torch.no_grad():
+        assert torch.allclose(net(x, t), net(x, t, torch.zeros_like(floor)), atol=1e-5)
+        assert not torch.allclose(net(x, t), net(x, t, floor))
+    assert net.flops_per_scene(12, include_floor=True) > net.flops_per_scene(12)
+    with pytest.raises(ValueError, match="at least one floor token"):
+        DenoiserConfig.from_preset("tiny", floor_tokens=0, floor_point_tokens=0, floor_slot_features=False)
+    with pytest.raises(ValueError, match="floor_slot_features needs"):
+        DenoiserConfig.from_preset("tiny", floor_point_tokens=0)
+
+
+def test_wall_features_measure_the_nearest_walls():
+    """A slot at (0.5, 0.25) in the square [-1, 1]^2 (walls sampled every 0.25): nearest wall x = 1 (inward
+    normal -x, 0.5 inside), then the wall z = 1 (normal -z, 0.75 inside)."""
+    net = SceneDenoiser(DenoiserConfig.tiny(), BEDROOM.feature_dim)
+    s = torch.linspace(-1, 1, 9)
+    one = torch.ones_like(s)
+    walls = [torch.stack([s, -one, 0 * one, one], -1), torch.stack([one, s, -one, 0 * one], -1),
+             torch.stack([-s, one, 0 * one, -one], -1), torch.stack([-one, -s, one, 0 * one], -1)]
+    points = torch.cat(walls)[None]  # (1, 36, 4): x, z, nx, nz
+    x = torch.zeros(1, 1, BEDROOM.feature_dim)
+    x[0, 0, 0], x[0, 0, 2] = 0.5, 0.25  # scaled translation x, z
+    f = net.wall_features(x, points)[0, 0]
+    assert torch.allclose(f, torch.tensor([-0.5, 0.0, -1.0, 0.0, 0.5, 0.0, -0.75, 0.0, -1.0, 0.75]), atol=1e-6)
+    x[0, 0, 0] = 1.3  # outside: negative signed distance
+    assert net.wall_features(x, points)[0, 0, 4] == pytest.approx(-0.3, abs=1e-6)
+
+
+def test_floor_shape_reaches_every_layer_through_adaln():
+    """With the floor in adaLN, the gates of every block depend on the floor."""
+    net = _randomised(SceneDenoiser(DenoiserConfig.small(), BEDROOM.feature_dim))
+    a, b = net.encode_floor(torch.randn(1, 256, 4)), net.encode_floor(torch.randn(1, 256, 4))
+    assert not torch.allclose(a[:, 0], b[:, 0])
 
 
 def test_floor_context_cache_and_unconditional_input():
@@ -114,6 +171,10 @@ def test_presets():
     paper, small = DenoiserConfig.paper(), DenoiserConfig.small()
     assert (paper.num_layers, paper.width, paper.num_heads, paper.ff_dim, paper.dropout) == (8, 512, 4, 2048, 0.1)
     assert paper.pointnet == (4, 64, 64, 512, 64)
+    for cfg in (paper, small):
+        assert cfg.floor_adaln and cfg.floor_point_tokens == 64 and cfg.floor_slot_features
+    old = DenoiserConfig()  # the dataclass defaults are the original design (old checkpoints load)
+    assert not old.floor_adaln and old.floor_point_tokens == 0 and not old.floor_slot_features
     assert small.width < paper.width
     net = SceneDenoiser(small, BEDROOM.feature_dim)
     assert net.num_parameters() < 4_000_000  # a few MB
@@ -176,6 +237,24 @@ def test_load_rejects_other_files_clearly(tmp_path):
         ScenePrior.load(tmp_path / "junk.pt")
     with pytest.raises(FileNotFoundError, match="iarcs pretrain"):
         ScenePrior.load_default("diningroom")
+    # weights that do not fit the config (e.g. from an incompatible iARCS version): a clear error
+    state = _tiny_prior().state()
+    state["denoiser_config"]["floor_adaln"] = False
+    atomic_torch_save(state, tmp_path / "mismatch.pt")
+    with pytest.raises(ValueError, match="do not fit"):
+        ScenePrior.load(tmp_path / "mismatch.pt")
+
+
+def test_checkpoints_without_the_floor_options_load_as_the_original_design(tmp_path):
+    torch.manual_seed(0)
+    prior = ScenePrior.create("bedroom", _stats(), "tiny", floor_point_tokens=0, floor_adaln=False,
+                              floor_slot_features=False)
+    state = prior.state()
+    for key in ("floor_point_tokens", "floor_adaln", "floor_slot_features"):  # written before these existed
+        del state["denoiser_config"][key]
+    atomic_torch_save(state, tmp_path / "old.pt")
+    loaded = ScenePrior.load(tmp_path / "old.pt")
+    assert loaded.denoiser.config == prior.denoiser.config
 
 
 def test_shipped_bedroom_prior_loads_and_samples_valid_scenes():

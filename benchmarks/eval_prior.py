@@ -1,0 +1,141 @@
+"""Quality of a scene prior against its training data and against real rooms, sampled on the same floors.
+
+Run as a script (not an import: torchrl installs a site-packages package called ``benchmarks``)::
+
+    .venv/bin/python benchmarks/eval_prior.py --checkpoint agents/checkpoints/bedroom_small.pt \
+        --reference procedural --data-seed 0 --num-scenes 500 --json out/eval/prior_train.json
+    .venv/bin/python benchmarks/eval_prior.py --reference ../shared/data/3dfront/bedroom_val.json
+
+For each reference room the prior samples one scene on that room's floor plan (20-step DDIM), so the
+reference and generated sets share their floors. Reported, for the reference and for the samples:
+``iarcs_env.metrics.evaluate_layouts`` (Col_obj, Col_scene, R_out, R_reach, R_walkable, objects per room,
+KL_class = KL(reference || generated) with eps 1e-6, count_distance = earth mover's distance of the
+object counts), plus ``iarcs_env.datasets.realism``'s object-count TVD and class KL (eps 1e-3).
+``--reference procedural`` uses the embedded generator with ``--data-seed`` (0 = the first rooms of the
+prior's training data; another seed = held-out rooms). ``--floor-usage`` also measures how much the prior
+uses its floor condition: the epsilon loss on the reference rooms with their own floors, with every room
+given the next room's floor, and with the all-zero (unconditional) floor (the same t and noise), and
+R_out of the samples checked against their own floors and against the next room's. Nothing is written into the repository unless
+``--json`` / ``--markdown`` point there; real rooms are only read.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+import torch  # noqa: E402
+
+from agents.denoiser import ScenePrior  # noqa: E402
+from iarcs_env.datasets import load_layouts  # noqa: E402
+from iarcs_env.datasets.realism import class_kl as realism_class_kl  # noqa: E402
+from iarcs_env.datasets.realism import count_tvd  # noqa: E402
+from iarcs_env.metrics import evaluate_layouts  # noqa: E402
+
+KEYS = ("Col_obj", "Col_scene", "R_out", "R_reach", "R_walkable", "mean_objects")
+
+
+def evaluate(prior: ScenePrior, reference: list, seed: int = 0, etas=(1.0,), num_steps: int = 20,
+             batch_size: int = 64) -> dict:
+    floors = [lay.centred().floor for lay in reference]
+    rows = {"reference": evaluate_layouts(reference)}
+    gens = {}
+    for eta in etas:
+        t0 = time.perf_counter()
+        gen = prior.sample(floors, num_steps=num_steps, eta=eta, generator=torch.Generator().manual_seed(seed),
+                           batch_size=batch_size).to_layouts()
+        seconds = time.perf_counter() - t0
+        r = evaluate_layouts(gen, reference=reference)
+        r["count_tvd"] = count_tvd(reference, gen)
+        r["class_kl_realism"] = realism_class_kl(reference, gen)
+        r["sample_seconds"] = seconds
+        rows[f"prior, eta = {eta:g}"] = r
+        gens[eta] = gen
+    evaluate.last_generated = gens
+    return rows
+
+
+@torch.no_grad()
+def floor_usage(prior: ScenePrior, reference: list, gen: list | None = None) -> dict:
+    """Epsilon loss with own / next room's / zero floors, and R_out of ``gen`` on own / next floors."""
+    import copy
+
+    from agents.pretrain import SceneTensors, encode_batch
+
+    net = prior.denoiser.eval()
+    data = SceneTensors.from_layouts(reference, prior.num_slots)
+    x0, floor = encode_batch(prior.spec, prior.stats, *data.batch(torch.arange(len(data))))
+    out = {}
+    for name, fl in (("loss_own_floor", floor), ("loss_next_floor", floor.roll(1, 0)),
+                     ("loss_zero_floor", torch.zeros_like(floor))):
+        g = torch.Generator().manual_seed(1234)
+        out[name] = float(prior.schedule.training_loss(lambda x, t: net(x, t, fl), x0, g))
+    if gen is not None:
+        floors = [lay.centred().floor for lay in reference]
+        swapped = []
+        for i, lay in enumerate(gen):
+            lay = copy.copy(lay)
+            lay.floor = floors[(i + 1) % len(floors)]
+            swapped.append(lay)
+        out["R_out_own_floor"] = evaluate_layouts(gen)["R_out"]
+        out["R_out_next_floor"] = evaluate_layouts(swapped)["R_out"]
+    return out
+
+
+def table(rows: dict) -> str:
+    head = ("| scenes | Col_obj | Col_scene | R_out | R_reach | R_walkable | objects / room | KL_class (1e-6) "
+            "| class KL (1e-3) | count TVD | count EMD |\n|---|" + "---:|" * 10)
+    lines = [head]
+    for name, r in rows.items():
+        vals = [f"{r[k]:.3f}" if k != "mean_objects" else f"{r[k]:.2f}" for k in KEYS]
+        extra = ([f"{r['KL_class']:.3f}", f"{r['class_kl_realism']:.3f}", f"{r['count_tvd']:.3f}",
+                  f"{r['count_distance']:.3f}"] if "KL_class" in r else ["-"] * 4)
+        lines.append(f"| {name} | " + " | ".join(vals + extra) + " |")
+    return "\n".join(lines)
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    p.add_argument("--checkpoint", default=str(ScenePrior.default_path("bedroom")))
+    p.add_argument("--room", default="bedroom")
+    p.add_argument("--reference", default="procedural", help="procedural, or a neutral-JSON / ATISS dataset")
+    p.add_argument("--data-seed", type=int, default=0, help="procedural generator seed (0: training data)")
+    p.add_argument("--num-scenes", type=int, default=500, help="reference rooms (0: all of a file)")
+    p.add_argument("--max-objects", type=int, default=0, help="drop reference rooms with more objects (0: keep)")
+    p.add_argument("--seed", type=int, default=0, help="sampling seed")
+    p.add_argument("--eta", type=float, nargs="+", default=[1.0])
+    p.add_argument("--threads", type=int, default=1)
+    p.add_argument("--floor-usage", action="store_true", help="also measure how much the floor is used")
+    p.add_argument("--json", default=None)
+    args = p.parse_args(argv)
+    torch.set_num_threads(args.threads)
+    prior = ScenePrior.load(args.checkpoint)
+    ref = load_layouts(args.reference, args.room, num_scenes=args.num_scenes, seed=args.data_seed)
+    if args.max_objects:
+        ref = [lay for lay in ref if len(lay) <= args.max_objects]
+    if args.num_scenes:
+        ref = ref[:args.num_scenes]
+    rows = evaluate(prior, ref, seed=args.seed, etas=args.eta)
+    print(f"{args.checkpoint} (step {prior.meta.get('step')}) vs {args.reference} "
+          f"(seed {args.data_seed}, {len(ref)} rooms)")
+    print(table(rows))
+    if args.floor_usage:
+        gen = evaluate.last_generated[args.eta[0]]
+        rows["floor_usage"] = floor_usage(prior, [lay for lay in ref if len(lay) <= prior.num_slots],
+                                          gen if all(len(lay) <= prior.num_slots for lay in ref) else None)
+        print("floor usage:", {k: round(v, 4) for k, v in rows["floor_usage"].items()})
+    if args.json:
+        Path(args.json).parent.mkdir(parents=True, exist_ok=True)
+        Path(args.json).write_text(json.dumps({"args": vars(args), "step": prior.meta.get("step"), "rows": rows},
+                                              indent=1))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
