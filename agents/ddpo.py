@@ -325,10 +325,16 @@ class DDPO:
 
     # --- persistence -----------------------------------------------------------------------------------
     def save(self, path: str | Path) -> Path:
-        """Everything needed to resume: the adapter (peft format), optimiser, counters and random states."""
+        """Everything needed to resume: the adapter (peft format), optimiser, counters and random states.
+
+        Crash-safe: written to ``path.tmp``, then swapped in; a kill at any moment leaves either ``path`` or
+        ``path.old`` complete (:meth:`load` falls back to the latter)."""
+        import shutil
+
         path = Path(path)
-        tmp = path.with_name(path.name + ".tmp")
-        tmp.mkdir(parents=True, exist_ok=True)
+        tmp, old = path.with_name(path.name + ".tmp"), path.with_name(path.name + ".old")
+        shutil.rmtree(tmp, ignore_errors=True)
+        tmp.mkdir(parents=True)
         self.policy.save_adapter(tmp / "adapter")
         state = {"algorithm": self.name, "config": asdict(self.config), "epoch": self.epoch,
                  "num_timesteps": self.num_timesteps, "adapter": self.policy.adapter,
@@ -338,22 +344,31 @@ class DDPO:
         torch.save(state, tmp / "trainer_state.pt")
         (tmp / "trainer.json").write_text(json.dumps({k: state[k] for k in ("algorithm", "config", "epoch",
                                                                             "num_timesteps", "adapter")}, indent=1))
-        old = path.with_name(path.name + ".old")
-        if path.exists():
+        if (path / "trainer_state.pt").exists():
+            shutil.rmtree(old, ignore_errors=True)
             path.rename(old)
+        else:
+            shutil.rmtree(path, ignore_errors=True)
         tmp.rename(path)
-        if old.exists():
-            import shutil
-
-            shutil.rmtree(old)
+        shutil.rmtree(old, ignore_errors=True)
         return path
+
+    @staticmethod
+    def latest_checkpoint(path: str | Path) -> Path | None:
+        """``path`` if it holds a complete checkpoint, else ``path.old`` (a kill during a save), else None."""
+        path = Path(path)
+        for candidate in (path, path.with_name(path.name + ".old")):
+            if (candidate / "trainer_state.pt").exists():
+                return candidate
+        return None
 
     @classmethod
     def load(cls, path: str | Path, policy: DiffusionPolicy, env, **kwargs) -> "DDPO":
         """Resume from :meth:`save`: loads the adapter into ``policy`` and restores the trainer's state."""
-        path = Path(path)
-        if not (path / "trainer_state.pt").exists():
+        found = cls.latest_checkpoint(path)
+        if found is None:
             raise FileNotFoundError(f"no training checkpoint in {path} (trainer_state.pt missing)")
+        path = found
         state = torch.load(path / "trainer_state.pt", weights_only=False)
         name = state["adapter"]
         policy.load_adapter(path / "adapter" / name, name)

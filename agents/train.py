@@ -33,7 +33,7 @@ class TrainConfig:
     adapter: str = "stage1"
     """Name of the LoRA adapter to train (one per task)."""
     init_adapter: str = ""
-    """Optional adapter folder (peft format) to start from, e.g. a stage-1 adapter for a stage-2 task."""
+    """Optional adapter folder (peft format) to start from; ``default``: the shipped stage-1 adapter."""
     algorithm: str = "ddpo"
     """ddpo (= ddpo-is) or ddpo-sf."""
     num_envs: int = 32
@@ -109,7 +109,8 @@ def build(cfg: TrainConfig, tensorboard_log: Path | None = None):
     prior = build_prior(cfg)
     policy = DiffusionPolicy(prior, adapter=cfg.adapter, num_steps=cfg.num_steps, eta=cfg.eta)
     if cfg.init_adapter:
-        src = policy.load_adapter(cfg.init_adapter, name="init")
+        path = stage1_adapter_path(cfg.room) if cfg.init_adapter == "default" else cfg.init_adapter
+        src = policy.load_adapter(path, name="init")
         policy.add_adapter(cfg.adapter, init_from=src)
     reward = CompositeReward.from_config(cfg.reward, stats=prior.stats)
     env = gym.make_vec(f"iARCS-{prior.spec.gym_name}-v0", num_envs=cfg.num_envs,
@@ -132,7 +133,7 @@ def run(cfg: TrainConfig, progress: bool = True, log=print):
     out.mkdir(parents=True, exist_ok=True)
     ckpt = out / CHECKPOINT_DIR
     saved = out / "config.yaml"
-    if ckpt.exists() and saved.exists():
+    if DDPO.latest_checkpoint(ckpt) and saved.exists():
         before = yaml.safe_load(saved.read_text())
         now = dataclasses.asdict(cfg)
         changed = [k for k in now if k not in ("epochs", "out", "eval_every", "checkpoint_every")
@@ -141,7 +142,7 @@ def run(cfg: TrainConfig, progress: bool = True, log=print):
             raise ValueError(f"{out} holds a run with other settings ({', '.join(changed)}); use another out folder")
     saved.write_text(yaml.safe_dump(dataclasses.asdict(cfg), sort_keys=False))
     algo, policy, env = build(cfg, tensorboard_log=out / "tb")
-    if (ckpt / "trainer_state.pt").exists():
+    if DDPO.latest_checkpoint(ckpt):
         algo = DDPO.load(ckpt, policy, env, tensorboard_log=out / "tb")
         log(f"resuming {out} at epoch {algo.epoch}")
     eval_floors = default_floors(cfg.room, count=cfg.eval_floors, seed=cfg.eval_seed)
@@ -162,8 +163,32 @@ def load_trained_policy(run_dir: str | Path):
         raise FileNotFoundError(f"{run_dir} is not a training run folder (config.yaml missing)")
     cfg = dataclass_from_dict(TrainConfig, yaml.safe_load((run_dir / "config.yaml").read_text()), str(run_dir))
     policy = DiffusionPolicy(build_prior(cfg), adapter="scratch", num_steps=cfg.num_steps, eta=cfg.eta)
-    for folder in (run_dir / ADAPTERS_DIR / cfg.adapter, run_dir / CHECKPOINT_DIR / "adapter" / cfg.adapter):
+    from .ddpo import DDPO
+
+    ckpt = DDPO.latest_checkpoint(run_dir / CHECKPOINT_DIR) or run_dir / CHECKPOINT_DIR
+    for folder in (run_dir / ADAPTERS_DIR / cfg.adapter, ckpt / "adapter" / cfg.adapter):
         if (folder / "adapter_config.json").exists():
             policy.load_adapter(folder, cfg.adapter)
             return policy, cfg
     raise FileNotFoundError(f"no adapter {cfg.adapter!r} in {run_dir} (train it first)")
+
+
+def stage1_adapter_path(room: str = "bedroom") -> Path:
+    """The stage-1 adapter shipped with the small prior of ``room`` (peft format)."""
+    from iarcs_env.rooms import get_room
+
+    return Path(__file__).parent / "checkpoints" / f"{get_room(room).name}_small_stage1" / "stage1"
+
+
+def load_stage1_policy(room: str = "bedroom", num_steps: int = 20):
+    """The shipped prior with its shipped stage-1 adapter active (stage 2 starts from it)."""
+    from .denoiser import ScenePrior
+    from .policy import DiffusionPolicy
+
+    path = stage1_adapter_path(room)
+    if not (path / "adapter_config.json").exists():
+        raise FileNotFoundError(f"no stage-1 adapter shipped for {room} (looked in {path}); train one with "
+                                "iarcs train --config experiments/stage1_bedroom_quick.yaml")
+    policy = DiffusionPolicy(ScenePrior.load_default(room), adapter="scratch", num_steps=num_steps)
+    policy.load_adapter(path, "stage1")
+    return policy

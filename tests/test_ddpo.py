@@ -73,10 +73,10 @@ def test_loss_with_ratio_one(algo):
                         "advantage": adv}, batch_size=[6])
     loss, info = model.policy_loss(batch)
     if algo is DDPO:  # ratio 1: loss = mean(max(-A, -A)) = -mean(A), nothing clipped
-        assert float(loss) == pytest.approx(float(-adv.mean()), abs=1e-6)
+        assert loss.item() == pytest.approx(-adv.mean().item(), abs=1e-6)
         assert info["clip_fraction"] == 0 and abs(info["approx_kl"]) < 1e-6
     else:  # score function: -mean(A log pi)
-        assert float(loss) == pytest.approx(float(-(adv[:, 0] * log_prob).mean()), rel=1e-5)
+        assert loss.item() == pytest.approx((-(adv[:, 0] * log_prob).mean()).item(), rel=1e-5)
 
 
 def test_advantages_are_normalised_per_floor_and_clipped():
@@ -176,3 +176,16 @@ def test_mismatched_env_and_policy_are_clear_errors():
         DDPO(DiffusionPolicy(tiny_prior(), num_steps=STEPS), make_env(num_envs=6), samples_per_floor=4, verbose=0)
     with pytest.raises(ValueError, match="unknown DDPO hyper-parameter"):
         DDPO(DiffusionPolicy(tiny_prior(), num_steps=STEPS), make_env(), learning_rat=1, verbose=0)
+
+
+def test_a_kill_during_save_leaves_a_loadable_checkpoint(tmp_path):
+    model = make_model()
+    model.learn(8 * STEPS)
+    model.save(tmp_path / "ckpt")
+    (tmp_path / "ckpt").rename(tmp_path / "ckpt.old")  # killed between the two renames of the next save
+    (tmp_path / "ckpt.tmp").mkdir()  # with a half-written new one
+    assert DDPO.latest_checkpoint(tmp_path / "ckpt") == tmp_path / "ckpt.old"
+    resumed = DDPO.load(tmp_path / "ckpt", DiffusionPolicy(tiny_prior(), num_steps=STEPS), make_env(), verbose=0)
+    assert resumed.epoch == 1
+    resumed.save(tmp_path / "ckpt")  # the next save cleans up
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["ckpt"]

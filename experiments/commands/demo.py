@@ -1,9 +1,9 @@
 """``iarcs demo``: the first thing a new user sees work, offline on a CPU.
 
-Today: the shipped small bedroom prior samples scenes on held-out procedural floor plans; they are
-evaluated with the paper's metrics next to the procedural data it was trained on, and rendered with
-collisions, out-of-bound objects and unreachable floor marked. (Stage-1 and stage-2 RL join the demo as
-they land.)
+Today: the shipped small bedroom prior and its shipped stage-1 LoRA adapter (DDPO on the universal
+rewards) sample scenes on the same held-out procedural floor plans; both are evaluated with the paper's
+metrics next to the procedural data the prior was trained on, and rendered with collisions, out-of-bound
+objects and unreachable floor marked. (Stage 2 joins the demo when it lands.)
 """
 
 from __future__ import annotations
@@ -21,9 +21,11 @@ def register(sub) -> None:
 
 
 def cmd_demo(args) -> int:
+    import contextlib
+
     import torch
 
-    from agents.denoiser import ScenePrior
+    from agents.train import load_stage1_policy
     from experiments.cli import CLIError
     from experiments.commands.evaluate import markdown_table
     from iarcs_env.datasets import save_layouts
@@ -36,35 +38,41 @@ def cmd_demo(args) -> int:
         raise CLIError(f"--num-scenes must be positive, got {args.num_scenes}")
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    print("1/4 loading the shipped bedroom prior ...")
-    prior = ScenePrior.load_default("bedroom")
+    print("1/4 loading the shipped bedroom prior and its stage-1 adapter ...")
+    policy = load_stage1_policy("bedroom")
     floors = default_floors("bedroom", count=args.num_scenes, seed=12345 + args.seed)
-    print(f"2/4 sampling {args.num_scenes} bedrooms (20 DDIM steps) on held-out floor plans ...")
-    t0 = time.perf_counter()
-    scenes = prior.sample(floors, num_steps=20, generator=torch.Generator().manual_seed(args.seed), batch_size=64)
-    elapsed = time.perf_counter() - t0
-    samples = scenes.to_layouts()
+    print(f"2/4 sampling {args.num_scenes} bedrooms (20 DDIM steps) on held-out floor plans, without and with "
+          "the adapter ...")
+    runs = {}
+    for name, context in (("prior", policy.base_policy), ("stage 1", contextlib.nullcontext)):
+        t0 = time.perf_counter()
+        with context():
+            scenes = policy.sample(floors, generator=torch.Generator().manual_seed(args.seed))
+        runs[name] = (scenes.to_layouts(), time.perf_counter() - t0)
     reference = generate_layouts("bedroom", 500, seed=0)
     print("3/4 evaluating (collisions, out of bound, reachability, walkability) ...")
-    res = evaluate_layouts(samples, reference=reference, keep_scenes=True, keep_masks=True)
-    ref = evaluate_layouts(reference, reference=reference)
+    table = markdown_table(evaluate_layouts(reference, reference=reference), "procedural training data").splitlines()
+    pictures = []
+    for name, (samples, elapsed) in runs.items():
+        res = evaluate_layouts(samples, reference=reference, keep_scenes=True, keep_masks=True)
+        table.append(markdown_table(res, f"{name} samples ({elapsed:.1f} s)").splitlines()[-1])
+        slug = name.replace(" ", "")
+        save_layouts(samples, out / f"{slug}.json", generator=f"iarcs demo: {name}", seed=args.seed)
+        shown = range(min(16, len(samples)))
+        grid = image_grid([render_layout(samples[i], overlays=res["scenes"][i].overlays()) for i in shown], cols=4,
+                          titles=[f"{name} {i}" for i in shown])
+        pictures.append(save_image(grid, out / f"{slug}.png"))
     print("4/4 rendering ...")
-    save_layouts(samples, out / "samples.json", generator="iarcs demo: shipped bedroom prior", seed=args.seed)
-    shown = range(min(16, len(samples)))
-    grid = image_grid([render_layout(samples[i], overlays=res["scenes"][i].overlays()) for i in shown], cols=4,
-                      titles=[f"sample {i}" for i in shown])
-    save_image(grid, out / "samples.png")
     save_image(image_grid([render_layout(r) for r in reference[:16]], cols=4), out / "training_data.png")
-    table = markdown_table(ref, "procedural training data").splitlines()
-    table.append(markdown_table(res, "shipped prior samples").splitlines()[-1])
     report = "\n".join([
         "# iARCS demo", "", "\n".join(table), "",
-        f"{len(samples)} bedrooms sampled in {elapsed:.1f} s on held-out floor plans; class-frequency KL to "
-        f"the training data {res['KL_class']:.4f}.", "",
-        "![samples](samples.png)", "", "Red: colliding objects; magenta: out of bound; orange: floor the "
-        "agent (radius 0.3 m) cannot reach from the largest free region.", ""])
+        f"{args.num_scenes} bedrooms per row, sampled on the same held-out floor plans with the same seed.", "",
+        "| prior | stage 1 (LoRA, universal rewards) |", "|---|---|",
+        f"| ![prior]({pictures[0].name}) | ![stage 1]({pictures[1].name}) |", "",
+        "Red: colliding objects; magenta: out of bound; orange: floor the agent (radius 0.3 m) cannot reach "
+        "from the largest free region.", ""])
     (out / "report.md").write_text(report)
     print("\n" + "\n".join(table) + "\n")
-    print(f"samples:   {out / 'samples.json'}\npictures:  {out / 'samples.png'} (issues marked), "
-          f"{out / 'training_data.png'}\nreport:    {out / 'report.md'}")
+    print(f"pictures: {', '.join(str(p) for p in pictures)} (issues marked), {out / 'training_data.png'}\n"
+          f"report:   {out / 'report.md'}")
     return 0
