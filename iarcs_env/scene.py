@@ -137,13 +137,12 @@ class SceneBatch:
         return box_corners_xz(self.translations[..., [0, 2]], self.half_sizes[..., [0, 2]], self.yaws)
 
     def __getitem__(self, index) -> "SceneBatch":
-        idx = torch.as_tensor(index) if not isinstance(index, slice) else index
-        rows = range(self.batch_size)[index] if isinstance(index, slice) else np.atleast_1d(idx.numpy())
-        rows = list(rows)
-        return SceneBatch(
-            self.spec, self.labels[index], self.translations[index], self.half_sizes[index],
-            self.yaws[index], [self.floors[i] for i in rows], [self.ids[i] for i in rows] if self.ids else [],
-        )
+        """Scenes ``index`` (a slice, a sequence of indices or a boolean mask) as a new batch."""
+        rows = np.arange(self.batch_size)[np.asarray(index) if not isinstance(index, slice) else index]
+        rows = np.atleast_1d(rows)
+        idx = torch.as_tensor(rows, dtype=torch.long)
+        return SceneBatch(self.spec, self.labels[idx], self.translations[idx], self.half_sizes[idx], self.yaws[idx],
+                          [self.floors[i] for i in rows], [self.ids[i] for i in rows] if self.ids else [])
 
     # --- conversion to and from files -----------------------------------------------------------------
     @classmethod

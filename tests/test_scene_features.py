@@ -101,3 +101,11 @@ def test_stats_from_layouts_and_dataset_stats_file(tmp_path):
     back = DatasetStats.load(tmp_path / "dataset_stats.txt")
     assert back == stats
     np.testing.assert_allclose(back.count_distribution(2), [0, 0.5, 0.5])
+
+
+def test_scene_batch_indexing():
+    layouts = [make_layout([NIGHTSTAND], id=f"s{i}") for i in range(4)]
+    batch = SceneBatch.from_layouts(layouts)
+    assert batch[1:3].ids == ["s1", "s2"] and batch[[3, 0]].ids == ["s3", "s0"]
+    picked = batch[np.array([True, False, False, True])]
+    assert picked.ids == ["s0", "s3"] and picked.labels.shape == (2, 1) and len(picked.floors) == 2
