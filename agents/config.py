@@ -26,7 +26,7 @@ def dataclass_from_dict(cls: type[T], data: dict, where: str = "config") -> T:
         expected = type(getattr(defaults, key))
         if expected is float and isinstance(value, int) and not isinstance(value, bool):
             value = float(value)
-        if value is not None and (not isinstance(value, expected) or (expected is not bool and isinstance(value, bool))):
+        if not isinstance(value, expected) or (expected is not bool and isinstance(value, bool)):
             raise ValueError(f"{where}: {key} must be a {expected.__name__}, got {value!r}")
         values[key] = value
     try:

@@ -17,14 +17,12 @@ Files in ``out`` (the run folder):
 from __future__ import annotations
 
 import copy
-import dataclasses
-import difflib
 import json
 import math
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Any, Callable, Sequence
+from typing import Callable, Sequence
 
 import numpy as np
 import torch
@@ -34,6 +32,7 @@ from iarcs_env.scene import Layout, SceneBatch
 from iarcs_env.schedule import NoiseSchedule
 from iarcs_env.stats import DatasetStats
 
+from .config import dataclass_from_dict, load_yaml_config
 from .denoiser import DenoiserConfig, SceneDenoiser, ScenePrior, atomic_torch_save
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
@@ -115,44 +114,12 @@ class PretrainConfig:
 
 def config_from_dict(data: dict, where: str = "config") -> PretrainConfig:
     """Build a :class:`PretrainConfig`, rejecting unknown keys and values of the wrong type."""
-    if not isinstance(data, dict):
-        raise ValueError(f"{where}: expected a mapping of settings, got {type(data).__name__}")
-    known = {f.name: f for f in dataclasses.fields(PretrainConfig)}
-    defaults = PretrainConfig()
-    values: dict[str, Any] = {}
-    for key, value in data.items():
-        if key not in known:
-            close = difflib.get_close_matches(str(key), list(known), n=1)
-            hint = f" (did you mean {close[0]!r}?)" if close else ""
-            raise ValueError(f"{where}: unknown key {key!r}{hint}; known keys: {', '.join(known)}")
-        expected = type(getattr(defaults, key))
-        if expected is float and isinstance(value, int) and not isinstance(value, bool):
-            value = float(value)
-        wrong = not isinstance(value, expected) or (expected is not bool and isinstance(value, bool))
-        if wrong:
-            raise ValueError(f"{where}: {key} must be a {expected.__name__}, got {value!r}")
-        values[key] = value
-    try:
-        return PretrainConfig(**values)
-    except (TypeError, ValueError) as err:
-        raise ValueError(f"{where}: {err}") from None
+    return dataclass_from_dict(PretrainConfig, data, where)
 
 
 def load_config(path: str | Path, **overrides) -> PretrainConfig:
     """Read a YAML config; keyword ``overrides`` (e.g. ``steps=100``) win over the file."""
-    import yaml
-
-    path = Path(path)
-    if not path.exists():
-        raise FileNotFoundError(f"no config file at {path} (see experiments/pretrain_*.yaml for examples)")
-    try:
-        data = yaml.safe_load(path.read_text()) or {}
-    except yaml.YAMLError as err:
-        raise ValueError(f"{path} is not valid YAML ({err})") from None
-    if not isinstance(data, dict):
-        raise ValueError(f"{path}: expected a mapping of settings at the top level")
-    data.update({k: v for k, v in overrides.items() if v is not None})
-    return config_from_dict(data, str(path))
+    return load_yaml_config(PretrainConfig, path, **overrides)
 
 
 def resolve_dataset(source: str) -> str:
