@@ -21,7 +21,7 @@ from torch import nn
 
 from iarcs_env.floorplan import FloorPlan
 from iarcs_env.scene import SceneBatch
-from iarcs_env.schedule import MIN_STD, gaussian_log_prob
+from iarcs_env.schedule import gaussian_log_prob
 
 from .denoiser import ScenePrior
 
@@ -135,7 +135,7 @@ class DiffusionPolicy(nn.Module):
             x_prev = mean
         else:
             x_prev = mean + std * torch.randn(mean.shape, generator=generator, dtype=mean.dtype, device=mean.device)
-        return x_prev, gaussian_log_prob(x_prev, mean, std.clamp(min=MIN_STD))
+        return x_prev, gaussian_log_prob(x_prev, mean, std)  # std is already floored at MIN_STD
 
     @torch.no_grad()
     def sample(self, floors: Sequence[FloorPlan], generator: torch.Generator | None = None,
