@@ -132,11 +132,13 @@ class CheckpointCallback(BaseCallback):
 class EvalCallback(BaseCallback):
     """Every ``eval_freq`` epochs: sample scenes on fixed evaluation floor plans, compute the paper's
     metrics and the reward, log them (and a grid of top-down renders) to TensorBoard, and append them to
-    ``log_path`` (JSON lines) when given."""
+    ``log_path`` (JSON lines) when given. ``scene_metrics`` ``{name: f(SceneBatch) -> float}`` adds metrics
+    (e.g. a task's success rate)."""
 
     def __init__(self, floors, eval_freq: int = 5, n_render: int = 16, seed: int = 0,
-                 log_path: str | Path | None = None, verbose: int = 0):
+                 log_path: str | Path | None = None, scene_metrics: dict | None = None, verbose: int = 0):
         super().__init__(verbose)
+        self.scene_metrics = scene_metrics
         self.floors = list(floors)
         self.eval_freq = eval_freq
         self.n_render = n_render
@@ -146,7 +148,8 @@ class EvalCallback(BaseCallback):
 
     def _on_step(self) -> bool:
         if self.model.epoch % self.eval_freq == 0:
-            metrics = self.model.evaluate(self.floors, seed=self.seed, n_render=self.n_render)
+            metrics = self.model.evaluate(self.floors, seed=self.seed, n_render=self.n_render,
+                                          scene_metrics=self.scene_metrics)
             self.history.append(metrics)
             if self.log_path:
                 with open(self.log_path, "a") as f:

@@ -274,8 +274,9 @@ class DDPO:
         return (action[0] if single else action), None
 
     @torch.no_grad()
-    def evaluate(self, floors, seed: int = 0, n_render: int = 16) -> dict[str, float]:
-        """Sample scenes on ``floors`` with the current adapter; metrics and reward, logged to TensorBoard."""
+    def evaluate(self, floors, seed: int = 0, n_render: int = 16, scene_metrics=None) -> dict[str, float]:
+        """Sample scenes on ``floors`` with the current adapter; metrics and reward, logged to TensorBoard.
+        ``scene_metrics`` ``{name: f(SceneBatch) -> float}`` adds metrics (e.g. a task's success rate)."""
         from iarcs_env.env import evaluate_reward
         from iarcs_env.metrics import evaluate_layouts
         from iarcs_env.render import render_layout
@@ -286,6 +287,7 @@ class DDPO:
                    if k in ("Col_obj", "Col_scene", "R_out", "R_reach", "R_walkable")}
         total, terms = evaluate_reward(self.venv.reward_fn, scenes)
         metrics["reward"] = float(total.mean())
+        metrics.update({name: float(fn(scenes)) for name, fn in (scene_metrics or {}).items()})
         metrics.update({f"reward_{k}": float(v.mean()) for k, v in terms.items()})
         if self.writer:
             for k, v in metrics.items():

@@ -1,9 +1,11 @@
-"""RL fine-tuning runs (stage 1: universal rewards) from a YAML config: builds the prior, the LoRA policy,
-the batched environment, the reward and the algorithm, trains with checkpoints that resume, evaluates and
-logs to TensorBoard, and saves the adapter in peft's format.
+"""RL fine-tuning runs from a YAML config: stage 1 (universal rewards) and, with a ``task:`` block, stage 2
+(a task reward written by the reward-synthesis agent, refined by reflection; see :mod:`agents.stage2`).
+Builds the prior, the LoRA policy, the batched environment, the reward and the algorithm, trains with
+checkpoints that resume, evaluates and logs to TensorBoard, and saves the adapter in peft's format.
 
 Run folder: ``config.yaml``, ``checkpoint/`` (resumable state), ``adapters/<name>/`` (the trained adapter),
-``tb/`` (TensorBoard), ``eval.jsonl`` (evaluation metrics per evaluation).
+``tb/`` (TensorBoard), ``eval.jsonl`` (evaluation metrics per evaluation); stage 2 adds
+``reward_memory.json`` (every reward program tried, with outcomes) and ``reward/`` (the final program).
 """
 
 from __future__ import annotations
@@ -13,6 +15,7 @@ import json
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import numpy as np
 import torch
 import yaml
 
@@ -55,6 +58,9 @@ class TrainConfig:
     reward: dict = field(default_factory=lambda: {"collision": 1.0, "boundary": 1.0, "accessibility": 0.5,
                                                    "object_count": {"weight": 1.0, "mode": "log_prob"}})
     """Composite reward: {name: weight} or {name: {weight: w, option: value}} (see rewards.composite)."""
+    task: dict = field(default_factory=dict)
+    """Stage 2: the task (agents.stage2.TaskConfig: constraint, checker, reflect_every, model, ...); empty for
+    stage 1."""
     epochs: int = 40
     """Training epochs (each: num_batches_per_epoch rollout batches, then updates)."""
     ddpo: dict = field(default_factory=dict)
@@ -96,8 +102,9 @@ def training_floors(cfg: TrainConfig):
     return [lay.centred().floor for lay in layouts]
 
 
-def build(cfg: TrainConfig, tensorboard_log: Path | None = None):
-    """(algorithm, policy, env) for a config; the algorithm is fresh (see :func:`run` for resuming)."""
+def build(cfg: TrainConfig, tensorboard_log: Path | None = None, task_reward=None, task_weight: float = 1.0):
+    """(algorithm, policy, env) for a config; the algorithm is fresh (see :func:`run` for resuming).
+    ``task_reward`` (stage 2) joins the composite reward as the term ``task``."""
     import gymnasium as gym
 
     import iarcs_env  # noqa: F401  (registers the environments)
@@ -112,7 +119,11 @@ def build(cfg: TrainConfig, tensorboard_log: Path | None = None):
         path = stage1_adapter_path(cfg.room) if cfg.init_adapter == "default" else cfg.init_adapter
         src = policy.load_adapter(path, name="init")
         policy.add_adapter(cfg.adapter, init_from=src)
-    reward = CompositeReward.from_config(cfg.reward, stats=prior.stats)
+    if task_reward is None:
+        reward = CompositeReward.from_config(cfg.reward, stats=prior.stats)
+    else:
+        reward = CompositeReward.from_config({**cfg.reward, "task": task_weight}, stats=prior.stats,
+                                             rewards={"task": task_reward})
     env = gym.make_vec(f"iARCS-{prior.spec.gym_name}-v0", num_envs=cfg.num_envs,
                        vectorization_mode="vector_entry_point", floors=training_floors(cfg), stats=prior.stats,
                        reward=reward, num_steps=cfg.num_steps)
@@ -141,17 +152,55 @@ def run(cfg: TrainConfig, progress: bool = True, log=print):
         if changed:
             raise ValueError(f"{out} holds a run with other settings ({', '.join(changed)}); use another out folder")
     saved.write_text(yaml.safe_dump(dataclasses.asdict(cfg), sort_keys=False))
-    algo, policy, env = build(cfg, tensorboard_log=out / "tb")
-    if DDPO.latest_checkpoint(ckpt):
+    resume = DDPO.latest_checkpoint(ckpt)
+    task = _setup_task(cfg, out, resume, log) if cfg.task else None
+    algo, policy, env = build(cfg, tensorboard_log=out / "tb", **({} if task is None else task["build"]))
+    if resume:
         algo = DDPO.load(ckpt, policy, env, tensorboard_log=out / "tb")
         log(f"resuming {out} at epoch {algo.epoch}")
     eval_floors = default_floors(cfg.room, count=cfg.eval_floors, seed=cfg.eval_seed)
-    evaluator = EvalCallback(eval_floors, eval_freq=cfg.eval_every, log_path=out / "eval.jsonl", verbose=1)
+    callbacks = [CheckpointCallback(cfg.checkpoint_every, ckpt)]
+    if task is not None:
+        callbacks.append(task["reflection"])
+    callbacks.append(EvalCallback(eval_floors, eval_freq=cfg.eval_every, log_path=out / "eval.jsonl", verbose=1,
+                                  scene_metrics=None if task is None else task["metrics"]))
     total = cfg.epochs * cfg.num_envs * cfg.num_steps * algo.config.num_batches_per_epoch
-    algo.learn(total, callback=[CheckpointCallback(cfg.checkpoint_every, ckpt), evaluator], progress_bar=progress)
+    try:
+        algo.learn(total, callback=callbacks, progress_bar=progress)
+    finally:
+        if task is not None:
+            task["reward"].close()
     policy.save_adapter(out / ADAPTERS_DIR)
     log(f"adapter: {out / ADAPTERS_DIR / cfg.adapter} (peft format); TensorBoard: {out / 'tb'}")
+    if task is not None:
+        from .stage2 import save_task_outputs
+
+        log(f"reward program: {save_task_outputs(out, task['memory']) / 'program.py'}")
     return algo
+
+
+def _setup_task(cfg: TrainConfig, out: Path, resume: Path | None, log) -> dict:
+    """Stage 2: the sandboxed task reward, the agent, the memory and the reflection callback factory."""
+    from .stage2 import MEMORY_FILE, ReflectionCallback, setup_task_reward, task_config
+
+    tcfg = task_config(cfg.task)
+    if resume:  # reflections made after the checkpoint we resume from never happened
+        from rewards.memory import EvolutionMemory
+
+        epoch = json.loads((resume / "trainer.json").read_text())["epoch"]
+        EvolutionMemory.open(out / MEMORY_FILE, tcfg.resolved_constraint(), cfg.room).forget_after(epoch)
+    reward, agent, memory, proposal = setup_task_reward(tcfg, cfg.room, out, log=log)
+    checker = None
+    metrics = {}
+    if tcfg.checker:
+        from iarcs_env.tasks import get_task
+
+        checker = get_task(tcfg.checker).check
+        metrics[f"task_success_{tcfg.checker}"] = lambda scenes: float(np.mean(checker(scenes)))
+    reflection = ReflectionCallback(agent, reward, memory, every=tcfg.reflect_every, checker=checker,
+                                    fixed_weight=tcfg.weight)
+    return {"build": {"task_reward": reward, "task_weight": tcfg.weight or proposal.weight}, "reward": reward,
+            "memory": memory, "metrics": metrics, "reflection": reflection}
 
 
 def load_trained_policy(run_dir: str | Path):

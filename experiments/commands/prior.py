@@ -21,8 +21,9 @@ def register(sub) -> None:
     p.add_argument("--seed", type=int, default=0, help="seed of the floor plans and of the sampler")
     p.add_argument("--out", required=True, help="output .json file (or a folder for ATISS format)")
     p.add_argument("--checkpoint", default=None,
-                   help="prior.pt of a pretraining run, or an `iarcs train` run folder (its prior + LoRA "
-                        "adapter); default: the prior shipped for --room")
+                   help="prior.pt of a pretraining run, an `iarcs train` run folder (its prior + LoRA "
+                        "adapter), or a LoRA adapter folder (peft format) for the shipped prior; default: the "
+                        "prior shipped for --room")
     p.add_argument("--floors", default=None,
                    help="layout file whose floor plans to use, room for room (default: procedural floors)")
     p.add_argument("--steps", type=int, default=20, help="DDIM steps (default 20)")
@@ -73,7 +74,13 @@ def cmd_sample(args) -> int:
     if args.eta < 0:
         raise CLIError(f"--eta must be >= 0, got {args.eta}")
 
-    if args.checkpoint and Path(args.checkpoint).is_dir():
+    if args.checkpoint and (Path(args.checkpoint) / "adapter_config.json").exists():
+        from agents.policy import DiffusionPolicy
+
+        policy = DiffusionPolicy(ScenePrior.load_default(spec.name), adapter="scratch")
+        policy.load_adapter(args.checkpoint, "sampled")
+        prior = policy.prior  # the shipped prior with this LoRA adapter (peft folder) active
+    elif args.checkpoint and Path(args.checkpoint).is_dir():
         from agents.train import load_trained_policy
 
         policy, _ = load_trained_policy(args.checkpoint)

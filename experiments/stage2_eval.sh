@@ -1,0 +1,52 @@
+#!/usr/bin/env bash
+# Stage-2 effect for one paper task (a Table 3 row): 500 scenes sampled on the same held-out floor plans with
+# the prior, the shipped stage-1 adapter and the task's stage-2 adapter, evaluated with `iarcs evaluate
+# --task` (success by the hand-written checker, physical metrics, SCA against the procedural training data),
+# next to the real bedrooms that satisfy the task.
+#   Usage: bash experiments/stage2_eval.sh TASK RUN_DIR [OUT_DIR]
+set -euo pipefail
+TASK=${1:?usage: stage2_eval.sh TASK RUN_DIR [OUT_DIR]}
+RUN=${2:?usage: stage2_eval.sh TASK RUN_DIR [OUT_DIR]}
+OUT=${3:-$RUN/eval500}
+IARCS=${IARCS:-.venv/bin/iarcs}
+PY=${PY:-.venv/bin/python}
+REAL=${REAL:-../shared/data/3dfront/bedroom_val.json}
+mkdir -p "$OUT"
+# held-out floors: a seed used neither by the prior (0) nor by RL training (1000)
+[ -f "$OUT/floors.json" ] || $IARCS data generate --room bedroom --num-scenes 500 --seed 777 --out "$OUT/floors.json"
+[ -f "$OUT/train_data.json" ] || $IARCS data generate --room bedroom --num-scenes 500 --seed 0 --out "$OUT/train_data.json"
+STAGE1=$($PY -c "from agents.train import stage1_adapter_path; print(stage1_adapter_path('bedroom'))")
+$IARCS sample --room bedroom --floors "$OUT/floors.json" --num-scenes 500 --seed 0 --out "$OUT/prior.json"
+$IARCS sample --room bedroom --floors "$OUT/floors.json" --num-scenes 500 --seed 0 --checkpoint "$STAGE1" --out "$OUT/stage1.json"
+$IARCS sample --room bedroom --floors "$OUT/floors.json" --num-scenes 500 --seed 0 --checkpoint "$RUN" --out "$OUT/stage2.json"
+for name in prior stage1 stage2; do
+  $IARCS evaluate --scenes "$OUT/$name.json" --reference "$OUT/train_data.json" --task "$TASK" --name "$name" \
+    --out "$OUT/${name}_report.json"
+done
+if [ -f "$REAL" ]; then
+  $PY - "$REAL" "$TASK" "$OUT/real_subset.json" <<'PY'
+import sys
+from iarcs_env.datasets import load_layouts, save_layouts
+from iarcs_env.tasks import task_success_mask
+real = load_layouts(sys.argv[1], "bedroom")
+keep = task_success_mask(sys.argv[2], real)
+save_layouts([l for l, k in zip(real, keep) if k], sys.argv[3], source=f"real bedrooms satisfying {sys.argv[2]}")
+print(f"{int(keep.sum())} of {len(real)} real bedrooms satisfy {sys.argv[2]}")
+PY
+  $IARCS evaluate --scenes "$OUT/real_subset.json" --task "$TASK" --features none --name "real (satisfying)" \
+    --out "$OUT/real_subset_report.json"
+fi
+$PY - "$OUT" "$TASK" <<'PY'
+import json, os, sys
+out, task = sys.argv[1:]
+rows = [(n, f"{out}/{n}_report.json") for n in ("real_subset", "prior", "stage1", "stage2")]
+print(f"| {task} | success % | Col_obj % | Col_scene % | R_out % | R_reach % | R_walkable | SCA % |")
+print("|---|---|---|---|---|---|---|---|")
+for name, path in rows:
+    if not os.path.exists(path):
+        continue
+    r = json.load(open(path))
+    sca = f"{100 * r['SCA']:.1f}" if "SCA" in r else "–"
+    print(f"| {name} | {100 * r['task_success_' + task]:.1f} | {100 * r['Col_obj']:.2f} | {100 * r['Col_scene']:.2f} | "
+          f"{100 * r['R_out']:.2f} | {100 * r['R_reach']:.2f} | {r['R_walkable']:.3f} | {sca} |")
+PY
