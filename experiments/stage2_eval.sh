@@ -27,9 +27,9 @@ if [ -f "$REAL" ]; then
   $PY - "$REAL" "$TASK" "$OUT/real_subset.json" <<'PY'
 import sys
 from iarcs_env.datasets import load_layouts, save_layouts
-from iarcs_env.tasks import task_success_mask
+from iarcs_env.tasks import task_results
 real = load_layouts(sys.argv[1], "bedroom")
-keep = task_success_mask(sys.argv[2], real)
+keep = task_results(sys.argv[2], real)
 save_layouts([l for l, k in zip(real, keep) if k], sys.argv[3], source=f"real bedrooms satisfying {sys.argv[2]}")
 print(f"{int(keep.sum())} of {len(real)} real bedrooms satisfy {sys.argv[2]}")
 PY

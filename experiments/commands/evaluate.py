@@ -1,13 +1,15 @@
 """``iarcs evaluate``: the paper's metrics for a layout file, as JSON and as a Markdown table.
 
     iarcs evaluate --scenes generated.json [--reference real.json] --out report.json \\
-        [--render-issues DIR] [--features cnn | clip:PATH | none]
+        [--render-issues DIR] [--features cnn | clip:PATH | none] [--task NAME ... | --task all]
 
 Writes ``report.json`` (``Col_obj``, ``Col_scene``, ``R_out``, ``R_reach``, ``R_walkable`` as fractions in
 [0, 1], counts, and with ``--reference`` the class-frequency KL, the object-count distance and FID / KID /
 SCA on top-down renders, naming the feature extractor) and ``report.md`` next to it (a table in the style
 of the paper's Table 2). ``--render-issues DIR`` writes a PNG per scene with a problem: colliding objects
-outlined red, out-of-bound objects magenta, unreachable free floor hatched orange.
+outlined red, out-of-bound objects magenta, unreachable free floor hatched orange. ``--task NAME``
+(repeatable, or ``all``) adds ``task_success_<name>``, the fraction of scenes passing the paper task's
+hand-written checker (:mod:`iarcs_env.tasks`), to both reports, and each scene's pass/fail to ``per_scene``.
 """
 
 from __future__ import annotations
@@ -31,6 +33,9 @@ def register(sub) -> None:
     p.add_argument("--features", default="cnn",
                    help="feature extractor for FID/KID with --reference: 'cnn' (the project's CNN trained on "
                         "the reference renders; default), 'clip:PATH' (a local CLIP checkpoint) or 'none'")
+    p.add_argument("--task", action="append", default=[], metavar="NAME",
+                   help="also report the success rate of this paper task (repeatable, or 'all'): "
+                        "reach_1m, tv_from_bed, study_zone, two_nightstands, wheelchair")
     p.add_argument("--room", help="evaluate only this room type (when the file mixes several)")
     p.add_argument("--name", help="row name in the Markdown table (default: the scenes file name)")
     p.add_argument("--cell", type=float, default=0.05, help="walkable grid cell in metres (default 0.05)")
@@ -67,6 +72,7 @@ def cmd_evaluate(args) -> int:
     features = None if args.features in ("none", "", None) else args.features
     if features and features != "cnn" and not features.startswith("clip:"):
         raise CLIError(f"--features must be 'cnn', 'clip:PATH' or 'none', not {args.features!r}")
+    tasks = _tasks(args.task)
     layouts = _load(args.scenes, args.room, "--scenes")
     reference = _load(args.reference, args.room or layouts[0].room_type, "--reference") if args.reference else None
     out = Path(args.out)
@@ -78,6 +84,13 @@ def cmd_evaluate(args) -> int:
                               features=features if reference is not None else None,
                               distribution_kwargs={"size": args.render_size, "seed": args.seed})
     scenes = result.pop("scenes")
+    passed = {}
+    if tasks:
+        from iarcs_env.tasks import task_results
+
+        for name in tasks:
+            passed[name] = task_results(name, layouts)
+            result[f"task_success_{name}"] = float(passed[name].mean())
     if reference is None:
         result["feature_extractor"] = "none (no --reference: no FID/KID/SCA)"
     elif not features:
@@ -88,19 +101,45 @@ def cmd_evaluate(args) -> int:
     result["per_scene"] = [
         {"id": s.id, "objects": s.n_objects, "colliding": s.colliding, "out_of_bound": s.out_of_bound,
          "unreachable_objects": s.unreachable_objects, "R_walkable": round(s.walkable, 6),
-         "penetration_m3": round(s.penetration, 6), "out_area_m2": round(s.out_area, 6)}
-        for s in scenes]
+         "penetration_m3": round(s.penetration, 6), "out_area_m2": round(s.out_area, 6),
+         **({"tasks": {name: bool(ok[i]) for name, ok in passed.items()}} if passed else {})}
+        for i, s in enumerate(scenes)]
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(json.dumps(result, indent=1))
     md = out.with_suffix(".md")
     md.write_text(markdown_report(result, args.name or Path(args.scenes).stem))
     print(markdown_table(result, args.name or Path(args.scenes).stem))
+    if tasks:
+        print("\n" + task_table(result))
     print(f"\nfeature extractor: {result['feature_extractor']}")
     print(f"report: {out}\ntable: {md}")
     if args.render_issues:
         n = render_issues(layouts, scenes, Path(args.render_issues), args.max_renders)
         print(f"issue renders: {n} in {args.render_issues}")
     return 0
+
+
+def _tasks(names: list[str]) -> list[str]:
+    """Task names from ``--task`` values ('all', or names, possibly comma-separated), in order, unique."""
+    from experiments.cli import CLIError
+    from iarcs_env.tasks import TASKS, get_task
+
+    out: list[str] = []
+    for value in names:
+        for name in filter(None, (n.strip() for n in value.split(","))):
+            try:
+                picked = list(TASKS) if name.lower() == "all" else [get_task(name).name]
+            except ValueError as err:
+                raise CLIError(f"--task: {err}") from None
+            out += [n for n in picked if n not in out]
+    return out
+
+
+def task_table(result: dict) -> str:
+    """Task success rates (%) of the ``task_success_<name>`` entries, one column per task."""
+    names = [k[len("task_success_"):] for k in result if k.startswith("task_success_")]
+    return "\n".join(["| Task success % ↑ | " + " | ".join(names) + " |", "|---|" + "---|" * len(names),
+                      "| | " + " | ".join(f"{100 * result['task_success_' + n]:.1f}" for n in names) + " |"])
 
 
 def _is_cli() -> bool:
@@ -141,6 +180,8 @@ def markdown_report(result: dict, name: str) -> str:
         lines.append(f"- reference: {result['n_reference_scenes']} scenes from `{result['reference_file']}` "
                      f"({result['reference_mean_objects']:.2f} objects per scene); object-count distance "
                      f"(earth mover's) {result['count_distance']:.3f}")
+    if any(k.startswith("task_success_") for k in result):
+        lines[4:4] = [task_table(result), ""]
     lines.append(f"- feature extractor: {result['feature_extractor']}")
     if "render_size" in result:
         lines.append(f"- renders for FID/KID/SCA: {result['render_size']} px, fixed view of "
@@ -152,6 +193,9 @@ def markdown_report(result: dict, name: str) -> str:
               "box overlap > 1e-6 m³ between ground objects; an object is out of bound when its footprint, shrunk "
               "by 0.05 m per side, has > 1e-5 m² outside the floor; R_walkable = largest 4-connected free region "
               "/ free cells; R_reach = ground objects whose inflated footprint touches that region.", ""]
+    if any(k.startswith("task_success_") for k in result):
+        lines += ["Task success: the fraction of scenes passing the task's hand-written checker (definitions in "
+                  "`iarcs_env/tasks.py`).", ""]
     return "\n".join(lines)
 
 
