@@ -4,7 +4,7 @@ constraint, added to the universal rewards, and refined from training feedback.
 - :class:`TaskConfig` is the ``task:`` block of a training YAML.
 - :func:`setup_task_reward` asks the agent (an LLM through litellm, or the offline planner) for a reward
   program, or takes the current one from the run's reward evolution memory when the run resumes, and loads
-  it into the sandbox (:class:`rewards.sandbox.SandboxedReward`).
+  it into a sandbox (:class:`rewards.sandbox.SandboxedReward`; close ``reward.sandbox`` when done).
 - :class:`ReflectionCallback` collects, every epoch, each reward component's mean and the task success
   rate of the rollouts (the hand-written checker of ``iarcs_env.tasks``, never the generated reward), and
   every ``reflect_every`` epochs hands them to the agent with the previous programs and a grid of renders
@@ -76,12 +76,12 @@ def make_task_agent(cfg: TaskConfig, sandbox=None):
     return make_agent(cfg.model or None, api_base=cfg.api_base or None, sandbox=sandbox, **cfg.llm)
 
 
-def synthesize_checked(agent, reward, room: str, constraint: str, attempts: int = 3):
-    """Ask ``agent`` for a program until the sandbox accepts one; returns ``(proposal, messages)``."""
+def synthesize_checked(agent, sandbox, room: str, constraint: str, attempts: int = 3):
+    """Ask ``agent`` for a program until ``sandbox`` accepts (loads) one; returns ``(proposal, messages)``."""
     feedback, messages = None, []
     for _ in range(attempts):
         proposal = agent.synthesize(room, constraint, feedback=feedback)
-        result = reward.load(proposal.code)
+        result = sandbox.load(proposal.code)
         if result.ok:
             return proposal, messages
         feedback = result.message
@@ -94,29 +94,36 @@ def setup_task_reward(cfg: TaskConfig, room: str, run_dir: Path, log=print):
     """``(task_reward, agent, memory, proposal)`` for a run: the program in the run's memory when resuming,
     else a fresh one from the agent, loaded into a sandboxed reward."""
     from rewards.memory import EvolutionMemory
-    from rewards.sandbox import SandboxedReward
+    from rewards.sandbox import RewardSandbox, SandboxedReward
 
     constraint = cfg.resolved_constraint()
-    reward = SandboxedReward(room=room, timeout=cfg.sandbox_timeout)
-    agent = make_task_agent(cfg, sandbox=reward.sandbox)
     memory = EvolutionMemory.open(Path(run_dir) / MEMORY_FILE, constraint, room)
+    sandbox = RewardSandbox(room=room, timeout=cfg.sandbox_timeout)
+    agent = make_task_agent(cfg, sandbox=sandbox)
     proposal = memory.current()
     if proposal is not None:
-        result = reward.load(proposal.code)
+        result = sandbox.load(proposal.code)
         if not result.ok:
+            sandbox.close()
             raise ValueError(f"the reward program in {memory.path} no longer loads: {result.message}")
         log(f"task reward: the current program of {memory.path} (stage {memory.stages()})")
     else:
-        proposal, failures = synthesize_checked(agent, reward, room, constraint)
+        try:
+            proposal, failures = synthesize_checked(agent, sandbox, room, constraint)
+        except Exception:
+            sandbox.close()
+            raise
         memory.record("synthesize", 0, proposal, accepted=True, message=" | ".join(failures))
         log(f"task reward: written by {proposal.source} for {constraint!r}"
             + (f"; not understood: {', '.join(proposal.not_understood)}" if proposal.not_understood else ""))
-    return reward, agent, memory, proposal
+    return SandboxedReward(sandbox), agent, memory, proposal
 
 
-def png_bytes(image) -> bytes:
+def png_bytes(image: np.ndarray) -> bytes:
+    from PIL import Image
+
     buf = io.BytesIO()
-    image.save(buf, format="PNG")
+    Image.fromarray(image).save(buf, format="PNG")
     return buf.getvalue()
 
 
@@ -130,8 +137,9 @@ class ReflectionCallback(BaseCallback):
         self.agent, self.task_reward, self.memory = agent, task_reward, memory
         self.every, self.checker = every, checker
         self.fixed_weight, self.n_render = fixed_weight, n_render
-        self.components: dict[str, list[float]] = {}
-        self.success: list[float] = []
+        self.components: dict[str, list[float]] = {}  # per epoch since the last reflection
+        self.success = memory.task_success_history()  # per epoch over the whole run (the agent judges trends)
+        self.window_start = len(self.success)  # where the current feedback window starts
 
     def _on_step(self) -> bool:
         for key, value in self.locals.items():
@@ -160,11 +168,12 @@ class ReflectionCallback(BaseCallback):
         current = self.memory.current()
         renders = [render_layout(l) for l in scene.to_layouts()[: self.n_render]] if scene is not None else []
         images = [png_bytes(image_grid(renders, cols=4))] if renders else []
-        outcome = {"task_success": [round(s, 4) for s in self.success], "component_stats": self.component_stats()}
+        outcome = {"epoch": self.model.epoch, "task_success": [round(s, 4) for s in self.success[self.window_start:]],
+                   "component_stats": self.component_stats()}
         context = ReflectionContext(proposal=current, stage=self.memory.stages(),
                                     component_stats=outcome["component_stats"], task_success=list(self.success),
                                     history=self.memory.history(), images=images,
-                                    sandbox_messages=self.task_reward.drain_messages())
+                                    sandbox_messages=self.task_reward.take_messages())
         epoch = self.model.epoch
         try:
             proposal = self.agent.reflect(context)
@@ -194,7 +203,7 @@ class ReflectionCallback(BaseCallback):
         self._reset()
 
     def _reset(self) -> None:
-        self.components, self.success = {}, []
+        self.components, self.window_start = {}, len(self.success)
 
     def _say(self, text: str) -> None:
         if self.verbose:

@@ -114,11 +114,13 @@ def build(cfg: TrainConfig, tensorboard_log: Path | None = None, task_reward=Non
     from .policy import DiffusionPolicy
 
     prior = build_prior(cfg)
-    policy = DiffusionPolicy(prior, adapter=cfg.adapter, num_steps=cfg.num_steps, eta=cfg.eta)
-    if cfg.init_adapter:
+    policy = DiffusionPolicy(prior, adapter="scratch" if cfg.init_adapter else cfg.adapter, num_steps=cfg.num_steps,
+                             eta=cfg.eta)
+    if cfg.init_adapter:  # the trained adapter starts as a copy of init_adapter
         path = stage1_adapter_path(cfg.room) if cfg.init_adapter == "default" else cfg.init_adapter
         src = policy.load_adapter(path, name="init")
         policy.add_adapter(cfg.adapter, init_from=src)
+        policy.model.delete_adapter("scratch")
     if task_reward is None:
         reward = CompositeReward.from_config(cfg.reward, stats=prior.stats)
     else:
@@ -169,7 +171,7 @@ def run(cfg: TrainConfig, progress: bool = True, log=print):
         algo.learn(total, callback=callbacks, progress_bar=progress)
     finally:
         if task is not None:
-            task["reward"].close()
+            task["reward"].sandbox.close()
     policy.save_adapter(out / ADAPTERS_DIR)
     log(f"adapter: {out / ADAPTERS_DIR / cfg.adapter} (peft format); TensorBoard: {out / 'tb'}")
     if task is not None:

@@ -15,6 +15,8 @@ COMMAND_MODULES = [
     "experiments.commands.demo",
     "experiments.commands.evaluate",
     "experiments.commands.prior",
+    "experiments.commands.reward",
+    "experiments.commands.generate",
 ]
 
 

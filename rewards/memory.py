@@ -22,8 +22,8 @@ from .proposal import RewardProposal
 
 class EvolutionMemory:
     """Entries, oldest first: ``{"kind": "synthesize"|"reflect", "stage", "epoch", "proposal", "accepted",
-    "message", "outcome"}``. ``outcome`` is the training feedback the proposal was judged on (filled in when
-    the next reflection happens)."""
+    "message", "outcomes"}``. ``outcomes`` lists the training feedback (one window per reflection) gathered
+    while the proposal was the reward in use."""
 
     def __init__(self, path: str | Path, constraint: str, room: str, entries: list[dict] | None = None):
         self.path = Path(path)
@@ -55,14 +55,14 @@ class EvolutionMemory:
 
     def record(self, kind: str, epoch: int, proposal: RewardProposal, accepted: bool, message: str = "",
                outcome: dict[str, Any] | None = None) -> dict:
-        """Append one attempt (and save). ``outcome`` of the program in use until now is attached to the
-        previous accepted entry."""
+        """Append one attempt (and save). ``outcome``, the feedback on the program in use until now, joins
+        that program's entry."""
         if outcome is not None:
             last = self.last_accepted_entry()
             if last is not None:
-                last["outcome"] = outcome
+                last["outcomes"].append(outcome)
         entry = {"kind": kind, "stage": self.stages(), "epoch": int(epoch), "time": time.time(),
-                 "proposal": proposal.to_dict(), "accepted": bool(accepted), "message": message, "outcome": None}
+                 "proposal": proposal.to_dict(), "accepted": bool(accepted), "message": message, "outcomes": []}
         self.entries.append(entry)
         self.save()
         return entry
@@ -80,12 +80,20 @@ class EvolutionMemory:
         return RewardProposal.from_dict(entry["proposal"]) if entry else None
 
     def history(self) -> list[dict]:
-        """Every attempt as ``{"proposal", "accepted", "message", "outcome", "epoch"}`` for reflection."""
-        return [{k: e[k] for k in ("epoch", "proposal", "accepted", "message", "outcome")} for e in self.entries]
+        """Every attempt as ``{"epoch", "proposal", "accepted", "message", "outcome"}`` for reflection
+        (``outcome``: the feedback windows while it was in use; empty for rejected attempts)."""
+        return [{"epoch": e["epoch"], "proposal": e["proposal"], "accepted": e["accepted"], "message": e["message"],
+                 "outcome": e["outcomes"]} for e in self.entries]
+
+    def task_success_history(self) -> list[float]:
+        """Task success per epoch over the whole run, oldest first (from the recorded feedback windows)."""
+        return [s for e in self.entries for w in e["outcomes"] for s in w.get("task_success", [])]
 
     def forget_after(self, epoch: int) -> None:
-        """Drop attempts made after ``epoch`` (a resumed run restarts from an earlier checkpoint)."""
+        """Drop attempts (and feedback) recorded after ``epoch`` (a resumed run restarts from an earlier
+        checkpoint)."""
         kept = [e for e in self.entries if e["epoch"] <= epoch]
-        if len(kept) != len(self.entries):
-            self.entries = kept
-            self.save()
+        for e in kept:
+            e["outcomes"] = [w for w in e["outcomes"] if w.get("epoch", 0) <= epoch]
+        self.entries = kept
+        self.save()

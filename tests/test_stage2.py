@@ -1,0 +1,111 @@
+"""Stage 2: the reward evolution memory, a short task run with reflection that resumes with its memory, and
+the command line around the agent (`iarcs reward synthesize|score`, `iarcs generate`)."""
+
+import json
+
+import pytest
+import torch
+import yaml
+
+from agents.denoiser import ScenePrior
+from experiments.cli import main
+from iarcs_env.env import default_stats
+from rewards.memory import EvolutionMemory
+from rewards.proposal import RewardProposal
+
+PROMPT = "A bedroom with 2 night tables on either side of the bed"
+
+
+def proposal(code="def reward(scene):\n    return scene.count('nightstand')\n", **kw):
+    return RewardProposal(constraint=PROMPT, reasoning="r", decomposition=["d"], code=code, **kw)
+
+
+def test_memory_keeps_attempts_and_outcomes_and_survives_a_restart(tmp_path):
+    path = tmp_path / "reward_memory.json"
+    mem = EvolutionMemory.open(path, PROMPT, "bedroom")
+    assert mem.current() is None and mem.stages() == 0
+    mem.record("synthesize", 0, proposal(weight=2.0), accepted=True)
+    mem.record("reflect", 10, proposal(code="bad"), accepted=False, message="SyntaxError",
+               outcome={"epoch": 10, "task_success": [0.1, 0.1]})
+    again = EvolutionMemory.open(path, PROMPT, "bedroom")
+    assert again.current().weight == 2.0  # the rejected program never becomes current
+    assert again.stages() == 1
+    history = again.history()
+    assert [h["accepted"] for h in history] == [True, False]
+    assert history[0]["outcome"] == [{"epoch": 10, "task_success": [0.1, 0.1]}]  # feedback while in use
+    assert history[1]["outcome"] == [] and again.task_success_history() == [0.1, 0.1]
+    again.record("reflect", 20, proposal(code="def reward(scene):\n    return scene.count('bed')\n"), accepted=True)
+    again.forget_after(10)  # resuming from the epoch-10 checkpoint: the epoch-20 reflection never happened
+    assert "nightstand" in EvolutionMemory.open(path, PROMPT, "bedroom").current().code
+    with pytest.raises(ValueError, match="another constraint"):
+        EvolutionMemory.open(path, "A wheelchair-accessible bedroom", "bedroom")
+
+
+@pytest.fixture
+def tiny_task_config(tmp_path):
+    torch.manual_seed(0)
+    prior = ScenePrior.create("bedroom", default_stats("bedroom"), "tiny")
+    prior.save(tmp_path / "prior.pt")
+    cfg = {"prior": str(tmp_path / "prior.pt"), "adapter": "two_nightstands", "num_envs": 8, "num_steps": 4,
+           "num_floors": 8, "eval_floors": 4, "epochs": 4, "eval_every": 2,
+           "ddpo": {"samples_per_floor": 4, "minibatch_size": 8},
+           "task": {"checker": "two_nightstands", "reflect_every": 2}, "out": str(tmp_path / "run")}
+    path = tmp_path / "task.yaml"
+    path.write_text(yaml.safe_dump(cfg))
+    return path
+
+
+def test_a_task_run_reflects_records_its_memory_and_resumes_with_it(tiny_task_config, tmp_path, capsys):
+    assert main(["train", "--config", str(tiny_task_config)]) == 0
+    run = tmp_path / "run"
+    memory = json.loads((run / "reward_memory.json").read_text())
+    assert memory["constraint"] == PROMPT
+    kinds = [(e["kind"], e["epoch"]) for e in memory["entries"]]
+    assert kinds == [("synthesize", 0), ("reflect", 2), ("reflect", 4)]
+    first = memory["entries"][0]
+    assert first["proposal"]["source"] == "offline" and "def reward(scene)" in first["proposal"]["code"]
+    window = first["outcomes"][0]  # feedback while the first program was in use: rollouts of epochs 1 and 2
+    assert window["epoch"] == 2 and len(window["task_success"]) == 2 and "task" in window["component_stats"]
+    assert (run / "reward" / "program.py").read_text() == EvolutionMemory.open(
+        run / "reward_memory.json", PROMPT, "bedroom").current().code
+    evals = [json.loads(l) for l in (run / "eval.jsonl").read_text().splitlines()]
+    assert all(0 <= e["task_success_two_nightstands"] <= 1 and "reward_task" in e for e in evals)
+    assert (run / "adapters" / "two_nightstands" / "adapter_config.json").exists()
+
+    capsys.readouterr()
+    assert main(["train", "--config", str(tiny_task_config), "--epochs", "6"]) == 0
+    out = capsys.readouterr().out
+    assert "resuming" in out and "current program" in out  # no new synthesis: the memory's program
+    entries = json.loads((run / "reward_memory.json").read_text())["entries"]
+    assert [e["epoch"] for e in entries] == [0, 2, 4, 6]
+
+
+def test_reward_synthesize_and_score_from_the_command_line(tmp_path, capsys):
+    program = tmp_path / "two_nightstands.py"
+    assert main(["reward", "synthesize", "--room", "bedroom", "--constraint", PROMPT, "--out", str(program)]) == 0
+    meta = json.loads(program.with_suffix(".json").read_text())
+    assert meta["reasoning"] and meta["decomposition"] and "def reward(scene)" in program.read_text()
+
+    from iarcs_env.datasets import save_layouts
+    from iarcs_env.datasets.procedural import generate_layouts
+
+    layouts = generate_layouts("bedroom", 10, seed=3)
+    save_layouts(layouts, tmp_path / "scenes.json")
+    counting = tmp_path / "count.py"
+    counting.write_text("def reward(scene):\n    return scene.count('nightstand')\n")
+    scores = tmp_path / "scores.json"
+    assert main(["reward", "score", "--program", str(counting), "--scenes", str(tmp_path / "scenes.json"),
+                 "--out", str(scores), "--batch-size", "4"]) == 0
+    assert json.loads(scores.read_text()) == [float(l.labels.count("nightstand")) for l in layouts]
+    assert main(["reward", "score", "--program", str(program), "--scenes", str(tmp_path / "scenes.json"),
+                 "--out", str(scores)]) == 0
+    values = json.loads(scores.read_text())
+    assert len(values) == 10 and all(isinstance(v, float) for v in values)
+
+
+def test_reward_commands_report_bad_input_clearly(tmp_path, capsys):
+    assert main(["reward", "score", "--program", str(tmp_path / "missing.py"), "--scenes", "x.json",
+                 "--out", str(tmp_path / "s.json")]) == 2
+    assert "no reward program" in capsys.readouterr().err
+    assert main(["reward", "synthesize", "--constraint", "  ", "--out", str(tmp_path / "p.py")]) == 2
+    assert "empty" in capsys.readouterr().err
