@@ -109,3 +109,30 @@ def test_reward_commands_report_bad_input_clearly(tmp_path, capsys):
     assert "no reward program" in capsys.readouterr().err
     assert main(["reward", "synthesize", "--constraint", "  ", "--out", str(tmp_path / "p.py")]) == 2
     assert "empty" in capsys.readouterr().err
+
+
+def test_generate_trains_once_then_reuses_the_adapter(tmp_path, monkeypatch, capsys):
+    monkeypatch.setenv("IARCS_HOME", str(tmp_path / "home"))
+    args = ["generate", "--room", "bedroom", "--constraint", PROMPT, "--num-scenes", "4", "--epochs", "1"]
+    assert main(args + ["--out", str(tmp_path / "a")]) == 0
+    out = tmp_path / "a"
+    assert len(json.loads((out / "scenes.json").read_text())["scenes"]) == 4
+    assert (out / "atiss" / "dataset_stats.txt").exists() and (out / "renders_1.png").exists()
+    report = (out / "report.md").read_text()
+    assert "def reward(scene)" in report and "task success" in report  # the prompt is a paper task's
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert set(metrics) == {"prior + stage 1", "with the task adapter"}
+    assert 0 <= metrics["with the task adapter"]["task_success"] <= 1
+    capsys.readouterr()
+    assert main(args + ["--out", str(tmp_path / "b")]) == 0
+    assert "reusing the adapter" in capsys.readouterr().out and not (tmp_path / "b" / "train").exists()
+
+
+def test_the_demo_runs_end_to_end_on_a_tiny_budget(tmp_path):
+    out = tmp_path / "demo"
+    assert main(["demo", "--out", str(out), "--task", "reach_1m", "--epochs", "1", "--num-scenes", "4"]) == 0
+    report = (out / "report.md").read_text()
+    for row in ("| prior |", "| stage 1 |", "| stage 2 |"):
+        assert row in report
+    assert "def reward(scene)" in report and "## Reflections" in report
+    assert all((out / f"renders_{i}.png").exists() for i in range(3))
