@@ -1,6 +1,7 @@
 """The ``iarcs`` command line. Each sub-command lives in ``experiments/commands/<name>.py`` and
 registers itself with ``register(subparsers)``; handlers raise :class:`CLIError` (or a ValueError /
-FileNotFoundError with a clear message) for bad input, which is printed without a traceback."""
+FileNotFoundError / model-call error with a clear message) for bad input, which is printed without a
+traceback."""
 
 from __future__ import annotations
 
@@ -34,12 +35,20 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def user_errors() -> tuple[type[Exception], ...]:
+    """Exceptions whose message is meant for the user (evaluated only when something was raised)."""
+    from rewards.agent import RewardSynthesisError
+    from rewards.llm import LLMError
+
+    return CLIError, FileNotFoundError, ValueError, LLMError, RewardSynthesisError
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     try:
         result = args.func(args)
-    except (CLIError, FileNotFoundError, ValueError) as err:
+    except user_errors() as err:
         print(f"iarcs: error: {err}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:

@@ -103,12 +103,20 @@ def test_reward_synthesize_and_score_from_the_command_line(tmp_path, capsys):
     assert len(values) == 10 and all(isinstance(v, float) for v in values)
 
 
-def test_reward_commands_report_bad_input_clearly(tmp_path, capsys):
+def test_reward_commands_report_bad_input_clearly(tmp_path, capsys, monkeypatch):
     assert main(["reward", "score", "--program", str(tmp_path / "missing.py"), "--scenes", "x.json",
                  "--out", str(tmp_path / "s.json")]) == 2
     assert "no reward program" in capsys.readouterr().err
     assert main(["reward", "synthesize", "--constraint", "  ", "--out", str(tmp_path / "p.py")]) == 2
     assert "empty" in capsys.readouterr().err
+    for var in ("GEMINI_API_KEY", "GOOGLE_API_KEY"):
+        monkeypatch.delenv(var, raising=False)
+    assert main(["reward", "synthesize", "--constraint", PROMPT, "--model", "gemini/gemini-2.5-pro",
+                 "--out", str(tmp_path / "p.py")]) == 2
+    assert "GEMINI_API_KEY" in capsys.readouterr().err  # no traceback, the variable to set
+    assert main(["reward", "synthesize", "--constraint", "a bedroom with a purple unicorn",
+                 "--out", str(tmp_path / "p.py")]) == 2
+    assert "not understood: purple unicorn" in capsys.readouterr().err
 
 
 def test_generate_trains_once_then_reuses_the_adapter(tmp_path, monkeypatch, capsys):
