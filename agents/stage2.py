@@ -69,11 +69,22 @@ def task_config(data: dict, where: str = "task") -> TaskConfig:
     return cfg
 
 
-def make_task_agent(cfg: TaskConfig, sandbox=None):
-    """The reward-synthesis agent of a task: the litellm agent when a model is configured, else the planner."""
+def make_task_agent(cfg: TaskConfig, sandbox=None, run_dir: Path | None = None):
+    """The reward-synthesis agent of a task: the litellm agent when a model is configured (its answers
+    cached in ``run_dir/llm_cache`` unless the config names a cache), else the offline planner."""
     from rewards.agent import make_agent
 
-    return make_agent(cfg.model or None, api_base=cfg.api_base or None, sandbox=sandbox, **cfg.llm)
+    if not cfg.model:
+        return make_agent(None, sandbox=sandbox)
+    llm = {"cache_dir": str(Path(run_dir) / "llm_cache")} if run_dir is not None else {}
+    llm.update(cfg.llm)
+    return make_agent(cfg.model, api_base=cfg.api_base or None, sandbox=sandbox, **llm)
+
+
+def llm_usage(agent) -> dict | None:
+    """Token, cost and call totals of an LLM agent (None for the offline planner)."""
+    client = getattr(agent, "client", None)
+    return client.usage.to_dict() if client is not None else None
 
 
 def synthesize_checked(agent, sandbox, room: str, constraint: str, attempts: int = 3):
@@ -99,7 +110,7 @@ def setup_task_reward(cfg: TaskConfig, room: str, run_dir: Path, log=print):
     constraint = cfg.resolved_constraint()
     memory = EvolutionMemory.open(Path(run_dir) / MEMORY_FILE, constraint, room)
     sandbox = RewardSandbox(room=room, timeout=cfg.sandbox_timeout)
-    agent = make_task_agent(cfg, sandbox=sandbox)
+    agent = make_task_agent(cfg, sandbox=sandbox, run_dir=run_dir)
     proposal = memory.current()
     if proposal is not None:
         result = sandbox.load(proposal.code)
@@ -192,7 +203,9 @@ class ReflectionCallback(BaseCallback):
             self.model.venv.reward_fn.weights["task"] = self.fixed_weight or proposal.weight
         verdict = ("kept the program" if not changed else "new program accepted" if accepted
                    else f"new program rejected by the sandbox ({result.message}); keeping the last good one")
-        self._say(f"reflection at epoch {epoch}: {verdict}. {proposal.notes}".strip())
+        usage = llm_usage(self.agent)
+        self._say(f"reflection at epoch {epoch}: {verdict}. {proposal.notes}".strip()
+                  + (f" [LLM so far: {usage}]" if usage else ""))
         if self.model.writer:
             self.model.writer.add_text("task/reflection", f"epoch {epoch}: {verdict}\n\n{proposal.notes}\n\n"
                                        + "\n".join("    " + line for line in proposal.code.splitlines()),
@@ -210,12 +223,15 @@ class ReflectionCallback(BaseCallback):
             print(text)
 
 
-def save_task_outputs(run_dir: Path, memory) -> Path:
-    """The final reward program and its record beside the run's adapter: ``reward/program.py`` and
-    ``reward/proposal.json``."""
+def save_task_outputs(run_dir: Path, memory, agent=None) -> Path:
+    """The final reward program and its record beside the run's adapter: ``reward/program.py``,
+    ``reward/proposal.json`` and, for an LLM agent, ``reward/llm_usage.json`` (tokens, cost, calls)."""
     proposal = memory.current()
     out = Path(run_dir) / "reward"
     out.mkdir(parents=True, exist_ok=True)
     (out / "program.py").write_text(proposal.code)
     (out / "proposal.json").write_text(json.dumps(proposal.to_dict(), indent=1))
+    usage = llm_usage(agent)
+    if usage:
+        (out / "llm_usage.json").write_text(json.dumps(usage, indent=1))
     return out

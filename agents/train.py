@@ -177,7 +177,7 @@ def run(cfg: TrainConfig, progress: bool = True, log=print):
     if task is not None:
         from .stage2 import save_task_outputs
 
-        log(f"reward program: {save_task_outputs(out, task['memory']) / 'program.py'}")
+        log(f"reward program: {save_task_outputs(out, task['memory'], task['agent']) / 'program.py'}")
     return algo
 
 
@@ -202,7 +202,7 @@ def _setup_task(cfg: TrainConfig, out: Path, resume: Path | None, log) -> dict:
     reflection = ReflectionCallback(agent, reward, memory, every=tcfg.reflect_every, checker=checker,
                                     fixed_weight=tcfg.weight)
     return {"build": {"task_reward": reward, "task_weight": tcfg.weight or proposal.weight}, "reward": reward,
-            "memory": memory, "metrics": metrics, "reflection": reflection}
+            "agent": agent, "memory": memory, "metrics": metrics, "reflection": reflection}
 
 
 def load_trained_policy(run_dir: str | Path):

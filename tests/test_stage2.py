@@ -144,3 +144,28 @@ def test_the_demo_runs_end_to_end_on_a_tiny_budget(tmp_path):
         assert row in report
     assert "def reward(scene)" in report and "## Reflections" in report
     assert all((out / f"renders_{i}.png").exists() for i in range(3))
+
+
+def test_a_task_run_with_an_llm_agent_over_litellm_survives_a_failing_reflection(tiny_task_config, tmp_path):
+    """The real litellm path inside training: synthesis and a reflection answered by a loopback server,
+    then a reflection whose server keeps failing (training goes on with the last good reward)."""
+    from test_llm_agent import FakeLLMServer
+
+    server = FakeLLMServer()
+    server.push({"fixture": "two_nightstands"}, {"fixture": "reflect_curriculum"}, {"status": 500}, {"status": 500})
+    cfg = yaml.safe_load(tiny_task_config.read_text())
+    cfg["task"].update(model="openai/test-model", api_base=server.url,
+                       llm={"api_key": "test", "timeout": 5.0, "max_retries": 1, "backoff_base": 0.01})
+    tiny_task_config.write_text(yaml.safe_dump(cfg))
+    assert main(["train", "--config", str(tiny_task_config)]) == 0
+    run = tmp_path / "run"
+    entries = json.loads((run / "reward_memory.json").read_text())["entries"]
+    assert entries[0]["proposal"]["source"] == "openai/test-model"
+    assert [(e["kind"], e["epoch"], e["accepted"]) for e in entries] == [
+        ("synthesize", 0, True), ("reflect", 2, True), ("reflect", 4, False)]
+    assert "agent failed" in entries[2]["message"]
+    assert entries[1]["proposal"]["curriculum"]  # the recorded reflection answer carries a curriculum
+    usage = json.loads((run / "reward" / "llm_usage.json").read_text())
+    assert usage["calls"] >= 2 and usage["prompt_tokens"] > 0 and usage["errors"] == 1
+    assert any((run / "llm_cache").iterdir())
+    assert (run / "reward" / "program.py").read_text() == entries[1]["proposal"]["code"]
