@@ -55,6 +55,10 @@ class DDPOConfig:
     """Advantages are clipped to +-adv_clip_max."""
     per_floor_advantages: bool = True
     """Normalise advantages per floor plan (False: per batch)."""
+    per_term_advantages: bool = False
+    """Standardise each term of a composite reward before the weighted sum, so that every term carries its
+    weight's share of the signal whatever the spread of its values (e.g. a task reward in [0, 1] next to
+    universal rewards that vary much more)."""
     kl_coef: float = 0.0
     """Weight of a KL penalty to the base policy (adapters disabled), against diversity collapse."""
     seed: int = 0
@@ -101,6 +105,9 @@ class DDPO:
         if self.venv.stats.to_json() != policy.prior.stats.to_json():
             raise ValueError("the env scales features with other dataset statistics than the prior; "
                              "create the env with stats=prior.stats")
+        if cfg.per_term_advantages and not isinstance(getattr(self.venv.reward_fn, "weights", None), dict):
+            raise ValueError("per_term_advantages needs a composite reward (rewards.composite.CompositeReward) whose "
+                             "terms and weights it can standardise")
         self.optimizer = torch.optim.AdamW(policy.trainable_parameters(), lr=cfg.learning_rate,
                                            betas=(cfg.adam_beta1, cfg.adam_beta2),
                                            weight_decay=cfg.adam_weight_decay, eps=cfg.adam_epsilon)
@@ -154,22 +161,36 @@ class DDPO:
         td["reward"] = torch.as_tensor(reward, dtype=torch.float32)[:, None].expand(-1, venv.num_steps)
         td["floor_index"] = torch.as_tensor(floor_idx)[:, None].expand(-1, venv.num_steps)
         self._last_terms = info.get("terms", {})
+        if self._last_terms:
+            terms = np.stack([np.asarray(v, dtype=np.float32) for v in self._last_terms.values()], -1)
+            td["terms"] = torch.from_numpy(terms)[:, None].expand(-1, venv.num_steps, -1)
         self._last_scene = info.get("scene")
         self.num_timesteps += venv.num_envs * venv.num_steps
         return td
 
-    def compute_advantages(self, rewards: torch.Tensor, floor_index: torch.Tensor) -> torch.Tensor:
-        """A = (r - mean) / (std + 1e-8) per floor plan (or per batch), clipped to +-adv_clip_max."""
-        r = rewards.double()
-        adv = torch.zeros_like(r)
+    def compute_advantages(self, rewards: torch.Tensor, floor_index: torch.Tensor,
+                           terms: torch.Tensor | None = None) -> torch.Tensor:
+        """A = (r - mean) / (std + 1e-8) per floor plan (or per batch), clipped to +-adv_clip_max.
+
+        With ``per_term_advantages`` and the composite's per-term values ``terms`` (B, K), r is replaced by
+        ``sum_k w_k z_k`` where z_k is term k standardised the same way."""
+        if self.config.per_term_advantages and terms is not None:
+            weights = torch.tensor(list(self.venv.reward_fn.weights.values()), dtype=torch.float64)
+            z = torch.stack([self._standardise(terms[:, k], floor_index) for k in range(terms.shape[1])], 1)
+            rewards = (z * weights).sum(1)
+        c = self.config.adv_clip_max
+        return self._standardise(rewards, floor_index).clamp(-c, c).float()
+
+    def _standardise(self, values: torch.Tensor, floor_index: torch.Tensor) -> torch.Tensor:
+        r = values.double()
+        out = torch.zeros_like(r)
         groups = floor_index.unique() if self.config.per_floor_advantages else [None]
         for g in groups:
             m = floor_index == g if g is not None else torch.ones_like(r, dtype=torch.bool)
             sel = r[m]
             std = sel.std(unbiased=False) if sel.numel() > 1 else sel.new_tensor(0.0)
-            adv[m] = (sel - sel.mean()) / (std + 1e-8)
-        c = self.config.adv_clip_max
-        return adv.clamp(-c, c).float()
+            out[m] = (sel - sel.mean()) / (std + 1e-8)
+        return out
 
     # --- updates ---------------------------------------------------------------------------------------
     def train(self, rollout: TensorDict) -> dict[str, float]:
@@ -240,7 +261,8 @@ class DDPO:
             rollouts = [self.collect_rollouts() for _ in range(self.config.num_batches_per_epoch)]
             rollout = torch.cat(rollouts, 0)
             rewards = rollout["reward"][:, 0]
-            rollout["advantage"] = self.compute_advantages(rewards, rollout["floor_index"][:, 0])[:, None, None] \
+            terms = rollout["terms"][:, 0] if "terms" in rollout.keys() else None
+            rollout["advantage"] = self.compute_advantages(rewards, rollout["floor_index"][:, 0], terms)[:, None, None] \
                 .expand(-1, rollout.batch_size[1], 1).clone()
             t1 = time.perf_counter()
             stats = {"reward_mean": float(rewards.mean()), "reward_std": float(rewards.std()),

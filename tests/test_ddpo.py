@@ -88,6 +88,22 @@ def test_advantages_are_normalised_per_floor_and_clipped():
     assert adv[7] == pytest.approx(1.5) and adv[3] == pytest.approx(-0.5)
 
 
+def test_per_term_advantages_give_every_term_its_weights_share():
+    """A task term with a tiny spread next to a term with a huge one: summed, the big term decides the
+    advantage; standardised per term, the 1:1 weights give both the same say."""
+    model = make_model(per_floor_advantages=False)
+    model.venv.reward_fn.weights = {"universal": 1.0, "task": 1.0}  # what a composite reward carries
+    universal = torch.tensor([10.0, -10.0, 10.0, -10.0, 0.0, 0.0, 0.0, 0.0])
+    task = torch.tensor([0.0, 0.0, 0.0, 0.0, 0.01, 0.01, -0.01, -0.01])
+    floor = torch.zeros(8, dtype=torch.long)
+    summed = model.compute_advantages(universal + task, floor)
+    assert summed[4] - summed[6] == pytest.approx(0.02 / (universal + task).std(unbiased=False).item(), rel=1e-3)
+    model.config.per_term_advantages = True
+    both = model.compute_advantages(universal + task, floor, torch.stack([universal, task], 1))
+    assert both[4] - both[6] > 1.0 and both[4] > 0 > both[6]
+    assert both[0] > 0 > both[1]  # the universal term still counts
+
+
 @pytest.mark.parametrize("algo", [DDPO, DDPOSF])
 def test_updates_move_the_policy_towards_high_advantage_actions(algo):
     """After a few updates on one rollout, the policy puts more probability on the chains that scored
