@@ -17,9 +17,12 @@ mean of the checks. Words it cannot map are reported in ``not_understood`` and i
 guessed; a constraint with nothing understood raises :class:`ValueError`.
 
 :meth:`OfflinePlanner.reflect` reads the task success trend: a statistically failing reward gets a
-curriculum (the main threshold relaxed, then tightened stage by stage) or a simplification (softer,
-denser terms); a rising one is kept; a high one tightens the curriculum toward the target; sandbox
-failures (NaN, errors, timeouts) give a safer program. Everything is deterministic.
+curriculum (the main threshold relaxed, then tightened stage by stage), then a simplification (softer,
+denser terms), then an emphasis (more weight on the checks that need the constraint's objects, up to a
+cap); a rising one is kept; a high one tightens the curriculum toward the target; sandbox failures (NaN,
+errors, timeouts) give a safer program. Reflection never drops a check: every check measures part of the
+constraint, and a reward without one would stop measuring it (the policy then climbs the reward while the
+constraint fails). Everything is deterministic.
 """
 
 from __future__ import annotations
@@ -137,6 +140,12 @@ IMPLIED_WEIGHT = 0.5           # existence of the objects a relation needs (part
 
 #: Check kinds that need their objects to exist (their existence earns IMPLIED_WEIGHT credit).
 NEEDS_OBJECTS = ("either_side", "side", "in_front", "view", "facing", "near")
+
+#: Check kinds that an emptier room satisfies (no object in the way, no pair too close): reflection's
+#: emphasis step leaves their weight as it is, so it can shift credit toward the checks that need objects.
+EMPTY_ROOM_KINDS = ("clear_path", "far")
+EMPHASIS_FACTOR = 2.0          # one emphasis step multiplies those checks' weights by this ...
+EMPHASIS_CAP = 4.0             # ... up to this multiple of their original weight
 
 
 # --------------------------------------------------------------------------------------------------------
@@ -810,12 +819,12 @@ def _fmt(value: float) -> str:
     return repr(round(float(value), 6))
 
 
-def render(plan: Plan, values: dict[str, float] | None = None, dropped: tuple[str, ...] = ()) -> str:
-    """The reward program of a plan; ``values`` override constants by name, ``dropped`` removes checks."""
+def render(plan: Plan, values: dict[str, float] | None = None) -> str:
+    """The reward program of a plan (every check); ``values`` override constants by name."""
     values = dict(values or {})
-    checks = [c for c in plan.checks if c.key not in dropped]
+    checks = plan.checks
     if not checks:
-        raise ValueError("no checks left to write a reward program from")
+        raise ValueError("no checks to write a reward program from")
     lines = [Template(HEADER).substitute(constraint=plan.constraint.replace('"""', "'''"))]
     lines.append("# Thresholds and softness of the checks")
     seen: set[str] = set()
@@ -950,7 +959,8 @@ class OfflinePlanner:
         for c in plan.checks:
             consts = ", ".join(f"{p.name}={_fmt((values or {}).get(p.name, p.value))}"
                                for p in c.params if p.kind == "threshold")
-            out.append(f"{c.key} (weight {c.weight:g}): {c.description}" + (f" [{consts}]" if consts else ""))
+            weight = (values or {}).get(f"W_{c.key.upper()}", c.weight)
+            out.append(f"{c.key} (weight {weight:g}): {c.description}" + (f" [{consts}]" if consts else ""))
         return out
 
     @staticmethod
@@ -989,7 +999,8 @@ class OfflinePlanner:
                                      f"revise this program ({err}); keeping it unchanged."})
         mine = old.source == self.source
         values = program_constants(old.code) if mine else {}
-        dropped = [c.key for c in plan.checks if mine and f"def check_{c.key}(" not in old.code]
+        # a program of mine without one of the plan's checks (an earlier planner version dropped it)
+        missing = [c.key for c in plan.checks if mine and f"def check_{c.key}(" not in old.code]
         curriculum = dict(old.curriculum or {}) if mine else {}
         success = list(context.task_success)
         changed_at = curriculum.get("changed_at")
@@ -1007,7 +1018,7 @@ class OfflinePlanner:
         if problems:
             action = self._safer(values, problems, mine, notes)
         elif trend == "high":
-            action = self._tighten(plan, values, dropped, curriculum, notes, reason="success is high")
+            action = self._tighten(plan, values, curriculum, notes, reason="success is high")
         elif trend == "rising":
             action = "keep"
             notes.append("Success is rising: keep the program unchanged.")
@@ -1019,17 +1030,21 @@ class OfflinePlanner:
             action = "keep"
             notes.append("Success is low, but the task reward is still climbing: give it time, keep the program.")
         elif trend == "failing":
-            action = self._relax(plan, values, dropped, curriculum, notes)
+            action = self._relax(plan, values, curriculum, notes)
         elif trend == "flat" and curriculum.get("stage", 0) < len(curriculum.get("values", [])) - 1:
-            action = self._tighten(plan, values, dropped, curriculum, notes,
+            action = self._tighten(plan, values, curriculum, notes,
                                    reason="success has settled at the relaxed stage")
         else:
             action = "keep"
             notes.append("Not enough evidence to change the reward: keep it." if trend == "unknown" else
                          "Success is flat but not failing and there is nothing to tighten: keep it.")
+        if missing:
+            notes.append(f"The program in use lacks {', '.join(missing)} (dropped by an earlier planner version): "
+                         f"bring it back, a reward without a check the constraint requires stops measuring it.")
+            action = "restore" if action == "keep" else action
         code = old.code
         if action != "keep":
-            code = render(plan, values, tuple(dropped))
+            code = render(plan, values)
             if curriculum:
                 curriculum["changed_at"] = len(success)
             if code == old.code:
@@ -1063,8 +1078,9 @@ class OfflinePlanner:
                 return c, next(p for p in c.params if p.name == c.curriculum)
         return None
 
-    def _relax(self, plan: Plan, values: dict, dropped: list[str], curriculum: dict, notes: list[str]) -> str:
-        """Failing: start a curriculum, step it back, simplify (softer, denser terms), then drop a check."""
+    def _relax(self, plan: Plan, values: dict, curriculum: dict, notes: list[str]) -> str:
+        """Failing: start a curriculum, step it back, simplify (softer, denser terms), then emphasise the checks
+        that need the constraint's objects (see :meth:`_emphasise`). Never drops a check."""
         target = self._primary(plan)
         if not curriculum and target is not None:
             check, p = target
@@ -1091,21 +1107,55 @@ class OfflinePlanner:
                          "(every *_SCALE doubled) and the soft AND leans on the mean of its parts (AND_SHARE "
                          "0.25), so partial progress on the hardest check earns more credit.")
             return "simplification"
-        primary = [c for c in plan.checks if c.weight >= PRIMARY_WEIGHT and c.key not in dropped]
-        if len(primary) > 1:
-            drop = primary[-1]
-            dropped.append(drop.key)
-            notes.append(f"Still failing after simplifying: drop the hardest remaining secondary check {drop.key} "
-                         f"({drop.description}) for now; {', '.join(c.key for c in primary[:-1])} still carry "
-                         f"the constraint, and the check comes back when success is high.")
-            return "simplification"
-        notes.append("Still failing, but everything is already relaxed and simplified: keep the program and "
-                     "leave it to the next reflection (or a language model) to rethink the decomposition.")
-        return "keep"
+        return self._emphasise(plan, values, notes)
 
-    def _tighten(self, plan: Plan, values: dict, dropped: list[str], curriculum: dict, notes: list[str],
-                 reason: str) -> str:
-        """Move the curriculum one stage toward its target; at the target undo simplifications."""
+    @staticmethod
+    def _emphasised(plan: Plan) -> list[Check]:
+        """The checks an emphasis step weighs up: the requirement checks that need their objects (relations,
+        heights, walls, a turning circle next to an object) and the existence of the objects a relation
+        needs (has_bed, ...). Counts, named objects and the checks an emptier room satisfies keep theirs."""
+        return [c for c in plan.checks
+                if (c.weight >= PRIMARY_WEIGHT and c.entities and c.kind not in EMPTY_ROOM_KINDS)
+                or (c.kind == "exists" and c.weight == IMPLIED_WEIGHT)]
+
+    def _emphasise(self, plan: Plan, values: dict, notes: list[str]) -> str:
+        """Still failing after relaxing and simplifying: multiply the weights of :meth:`_emphasised` checks by
+        EMPHASIS_FACTOR, up to EMPHASIS_CAP times their original weight; at the cap, keep the program."""
+        never = ("No check is dropped: each measures part of the constraint, and a reward without one would "
+                 "rise while the constraint fails.")
+        targets = self._emphasised(plan)
+        others = [c for c in plan.checks if c not in targets]
+        if not targets or not others:
+            why = ("no check needs the constraint's objects" if not targets else
+                   "every check needs the constraint's objects, and raising all weights together leaves the "
+                   "weighted mean unchanged")
+            notes.append(f"Still failing after relaxing and simplifying; an emphasis would change nothing ({why}). "
+                         f"{never} Keep the program and leave it to the next reflection (or a language model) "
+                         f"to rethink the decomposition.")
+            return "keep"
+        raised = []
+        for c in targets:
+            name = f"W_{c.key.upper()}"
+            now = values.get(name, c.weight)
+            new = round(min(now * EMPHASIS_FACTOR, c.weight * EMPHASIS_CAP), 6)
+            if new > now:
+                values[name] = new
+                raised.append(f"{name} {now:g} -> {new:g}")
+        if not raised:
+            notes.append(f"Still failing, and the checks that need the constraint's objects "
+                         f"({', '.join(c.key for c in targets)}) are already at {EMPHASIS_CAP:g}x their original "
+                         f"weight, the cap of the emphasis. {never} Keep the program and leave it to the next "
+                         f"reflection (or a language model) to rethink the decomposition.")
+            return "keep"
+        rest = ", ".join(c.key for c in others) + (" keeps its" if len(others) == 1 else " keep their")
+        notes.append(f"Still failing after relaxing and simplifying: emphasise the checks that need the constraint's "
+                     f"objects ({'; '.join(raised)}; at most {EMPHASIS_CAP:g}x the original weight), so the reward "
+                     f"pays more for them; {rest} weight. {never}")
+        return "emphasis"
+
+    def _tighten(self, plan: Plan, values: dict, curriculum: dict, notes: list[str], reason: str) -> str:
+        """Move the curriculum one stage toward its target; at the target undo the simplification (an
+        emphasis stays: it makes the reward measure the constraint more, not less)."""
         if curriculum.get("stage", 0) < len(curriculum.get("values", [])) - 1:
             curriculum["stage"] += 1
             values[curriculum["parameter"]] = curriculum["values"][curriculum["stage"]]
@@ -1113,15 +1163,15 @@ class OfflinePlanner:
             notes.append(f"Tighten ({reason}): {curriculum['parameter']} = {values[curriculum['parameter']]:g}"
                          + (" (the final target)." if final else "."))
             return "tighten"
-        if dropped or values.get("AND_SHARE", 0.5) < 0.5:
+        if values.get("AND_SHARE", 0.5) < 0.5:
             for c in plan.checks:
                 for p in c.params:
                     if p.kind == "scale":
                         values[p.name] = p.value
             values["AND_SHARE"] = 0.5
-            restored = f" and bring back {', '.join(dropped)}" if dropped else ""
-            dropped.clear()
-            notes.append(f"Tighten ({reason}): restore the original softness{restored}.")
+            emphasised = [c.key for c in plan.checks if values.get(f"W_{c.key.upper()}", c.weight) > c.weight]
+            kept = (f"; {', '.join(emphasised)} keep their emphasised weight" if emphasised else "")
+            notes.append(f"Tighten ({reason}): restore the original softness{kept}.")
             return "tighten"
         notes.append(f"{reason[0].upper() + reason[1:]} and the program is at its final target: keep it.")
         return "keep"

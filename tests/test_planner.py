@@ -3,6 +3,7 @@ on scene batches, agree with the hand-written task checkers (without calling the
 that grows toward satisfaction; unknown words are reported, not guessed; reflection is deterministic."""
 
 import math
+import re
 
 import numpy as np
 import pytest
@@ -11,7 +12,7 @@ import torch
 from iarcs_env.datasets.procedural import generate_layouts
 from iarcs_env.scene import SceneBatch
 from iarcs_env.tasks import TASKS, task_results
-from rewards.planner import OfflinePlanner, program_constants, read_constraint, success_trend
+from rewards.planner import OfflinePlanner, program_constants, read_constraint, render, success_trend
 from rewards.proposal import ReflectionContext, RewardProposal
 from rewards.sandbox import RewardSandbox, check_program
 from rewards.scene_api import Scene
@@ -247,3 +248,93 @@ def test_sandbox_failures_give_a_safer_program():
     p1 = PLANNER.reflect(ReflectionContext(p0, 0, FLAT, [0.1, 0.3], sandbox_messages=["timed out after 10 s"]))
     assert program_constants(p1.code)["PARTIAL_CREDIT"] == 0 and "timed out" in p1.notes
     assert check_program(p1.code) == []
+
+
+def failing_reflections(p0, n):
+    """n reflections of a reward whose task success stays near zero (two more evaluations before each)."""
+    history, out, p = [0.02, 0.03, 0.02, 0.02], [], p0
+    for k in range(n):
+        p = PLANNER.reflect(ReflectionContext(p, k, FLAT, history))
+        out.append(p)
+        history = history + [0.02, 0.01]
+    return out
+
+
+def checks_and_weights(code):
+    names = set(re.findall(r"^def (check_\w+)\(scene\)", code, flags=re.M))
+    weights = {k: v for k, v in program_constants(code).items() if k.startswith("W_")}
+    return names, weights
+
+
+@pytest.mark.parametrize("name", list(TASKS))
+def test_failing_reflection_never_drops_a_check(name):
+    """However long success stays low, every check (and its weight) stays in the program: a reward without a
+    check the constraint requires stops measuring it. Weights only grow, by at most 4x."""
+    p0 = PROGRAMS[name]
+    checks0, weights0 = checks_and_weights(p0.code)
+    assert checks0 and set(weights0) == {"W_" + c[len("check_"):].upper() for c in checks0}
+    steps = failing_reflections(p0, 7)
+    for p in steps:
+        checks, weights = checks_and_weights(p.code)
+        assert checks == checks0 and set(weights) == set(weights0), p.notes
+        assert all(weights0[k] <= weights[k] <= 4 * weights0[k] for k in weights0), p.notes
+        assert check_program(p.code) == [] and "drop the" not in p.notes
+    assert steps[-1].code == steps[-2].code and "Reflection: keep." in steps[-1].reasoning
+    assert "No check is dropped" in steps[-1].notes
+    again = OfflinePlanner()   # deterministic, step by step
+    assert again.reflect(ReflectionContext(steps[2], 3, FLAT, [0.02] * 10)).to_dict() == \
+        PLANNER.reflect(ReflectionContext(steps[2], 3, FLAT, [0.02] * 10)).to_dict()
+
+
+def test_emphasis_raises_the_requirement_weights():
+    """After the curriculum and the simplification, a still failing reward weighs up the checks that need the
+    constraint's objects (the relation, the turning circle, has_bed) up to 4x, keeps the others, then stops."""
+    steps = failing_reflections(PROGRAMS["wheelchair"], 5)
+    assert [p.reasoning.rsplit(" ", 1)[-1] for p in steps] == \
+        ["curriculum.", "simplification.", "emphasis.", "emphasis.", "keep."]
+    w = [program_constants(p.code) for p in steps]
+    assert [c["W_TURNING_CIRCLE"] for c in w] == [2, 2, 4, 8, 8]
+    assert [c["W_CLEAR_PATHS"] for c in w] == [2] * 5      # an emptier room satisfies it: not weighed up
+    assert "emphasise" in steps[2].notes and "W_TURNING_CIRCLE 2 -> 4" in steps[2].notes
+    assert "cap" in steps[4].notes and steps[4].code == steps[3].code
+    assert w[2]["AND_SHARE"] == 0.25 and w[2]["PATH_WIDTH"] == w[1]["PATH_WIDTH"]  # nothing else changes
+    assert "turning_circle (weight 4)" in " ".join(steps[2].decomposition)
+    # two nightstands: the relation and has_bed weigh up, the count keeps its weight
+    steps = failing_reflections(PROGRAMS["two_nightstands"], 5)
+    w = [program_constants(p.code) for p in steps]
+    assert [c["W_NIGHTSTAND_EITHER_SIDE_OF_BED"] for c in w] == [2, 2, 4, 8, 8]
+    assert [c["W_HAS_BED"] for c in w] == [0.5, 0.5, 1, 2, 2]
+    assert [c["W_COUNT_NIGHTSTAND"] for c in w] == [1] * 5
+    # the reward now pays less for the easy part alone: two nightstands and no bed
+    no_bed = [make_layout([box("nightstand", 2.0, 0.25, 0.25, 0.2, hy=0.3),
+                           box("nightstand", 4.0, 0.25, 0.25, 0.2, hy=0.3)], floor=ROOM)]
+    before, after = run(steps[1].code, no_bed)[0], run(steps[3].code, no_bed)[0]
+    assert after < before - 0.1, (before, after)
+    # success high again: tightening restores the softness, the emphasis stays
+    history = [0.02] * 12 + [0.65, 0.7]
+    p = steps[3]
+    for k in range(3):
+        p = PLANNER.reflect(ReflectionContext(p, 10 + k, FLAT, history + [0.7] * (2 * k)))
+    c = program_constants(p.code)
+    assert c["AND_SHARE"] == 0.5 and c["SIDE_GAP"] == 0.5 and c["W_NIGHTSTAND_EITHER_SIDE_OF_BED"] == 8
+
+
+def test_emphasis_that_changes_nothing_keeps_the_program():
+    """When every check needs the constraint's objects, weighing them all up leaves the weighted mean as it is:
+    the planner says so and keeps the program instead of calling a rescaling a change."""
+    steps = failing_reflections(PROGRAMS["tv_from_bed"], 3)
+    assert steps[2].code == steps[1].code and "Reflection: keep." in steps[2].reasoning
+    assert "weighted mean unchanged" in steps[2].notes and "No check is dropped" in steps[2].notes
+
+
+def test_a_dropped_check_comes_back():
+    """A program of mine that lacks one of the plan's checks (an earlier planner version dropped it) gets it
+    back at the next reflection, even when the program would otherwise be kept."""
+    prompt = TASKS["wheelchair"].prompt
+    plan = read_constraint(prompt)
+    plan.checks = [c for c in plan.checks if c.key != "turning_circle"]
+    legacy = RewardProposal(**{**PROGRAMS["wheelchair"].to_dict(), "code": render(plan)})
+    assert "def check_turning_circle(" not in legacy.code
+    p = PLANNER.reflect(ReflectionContext(legacy, 0, FLAT, [0.02, 0.05, 0.1, 0.16]))   # rising: would keep
+    assert "def check_turning_circle(" in p.code and "W_TURNING_CIRCLE" in p.code and "turning_circle" in p.notes
+    assert p.code == PROGRAMS["wheelchair"].code and check_program(p.code) == []
