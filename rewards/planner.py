@@ -138,8 +138,12 @@ PRIMARY_WEIGHT = 2.0           # checks that carry the constraint's relation
 SUPPORT_WEIGHT = 1.0           # existence and count checks the constraint asks for
 IMPLIED_WEIGHT = 0.5           # existence of the objects a relation needs (partial credit)
 
-#: Check kinds that need their objects to exist (their existence earns IMPLIED_WEIGHT credit).
-NEEDS_OBJECTS = ("either_side", "side", "in_front", "view", "facing", "near")
+#: Check kinds that need their objects to exist: every object such a check names (a relation's subject and
+#: reference, the object a turning circle must be next to) also gets a has_<object> check of IMPLIED_WEIGHT
+#: unless the constraint already counts it, so adding a missing one already pays. Not here: the checks an
+#: emptier room satisfies (EMPTY_ROOM_KINDS) and the single-object requirements ("height", "wall") whose own
+#: value already includes "there is at least one".
+NEEDS_OBJECTS = ("either_side", "side", "in_front", "view", "facing", "near", "turning")
 
 #: Check kinds that an emptier room satisfies (no object in the way, no pair too close): reflection's
 #: emphasis step leaves their weight as it is, so it can shift credit toward the checks that need objects.
@@ -536,8 +540,10 @@ def _rule_turning(r: _Reader) -> None:
         diameter = quantity(q) * (2 if "radius" in m.group() else 1) if q else WHEELCHAIR_TURN
         r.plan.checks = [c for c in r.plan.checks if c.kind != "turning"]
         subject = r.after(m.end())
-        near = subject.entity if subject and re.search(r"\b(?:near|next to|beside|by)\b",
-                                                       r.text[m.end():subject.start]) else None
+        link = subject and re.search(r"\b(?:near|next to|beside|by)\b", r.text[m.end():subject.start])
+        near = subject.entity if link else None
+        if link:                # "near the sofa" is read here, not again as a distance relation
+            r.cover(m.end() + link.start(), m.end() + link.end())
         if near is None and r.plan.room == "bedroom" and r.has_kind("clear_path"):
             near = OBJECTS["bed"]
         r.add(turning_check(diameter, near, m.group()), m.start(), m.end(), subject if near else None)

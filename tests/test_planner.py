@@ -12,7 +12,8 @@ import torch
 from iarcs_env.datasets.procedural import generate_layouts
 from iarcs_env.scene import SceneBatch
 from iarcs_env.tasks import TASKS, task_results
-from rewards.planner import OfflinePlanner, program_constants, read_constraint, render, success_trend
+from rewards.planner import (IMPLIED_WEIGHT, NEEDS_OBJECTS, OfflinePlanner, program_constants, read_constraint,
+                             render, success_trend)
 from rewards.proposal import ReflectionContext, RewardProposal
 from rewards.sandbox import RewardSandbox, check_program
 from rewards.scene_api import Scene
@@ -71,6 +72,8 @@ def test_programs_match_the_task_definitions():
     assert (c["study_zone"]["FRONT_DEPTH"], c["study_zone"]["FRONT_MARGIN"]) == (0.9, 0.1)
     assert c["two_nightstands"]["SIDE_GAP"] == 0.5 and c["two_nightstands"]["NIGHTSTAND_MIN"] == 2
     assert (wheel["PATH_WIDTH"], wheel["TURN_DIAMETER"], wheel["TURN_NEAR"]) == (0.9, 1.5, 0.5)
+    # the turning circle must be next to a bed: having a bed earns the small existence credit
+    assert "def check_has_bed(scene)" in PROGRAMS["wheelchair"].code and wheel["W_HAS_BED"] == 0.5
     assert "farsighted" in PROGRAMS["tv_from_bed"].reasoning and "4k" in PROGRAMS["tv_from_bed"].reasoning
 
 
@@ -173,6 +176,43 @@ def test_vocabulary_synonyms_numbers_and_units():
     p = PLANNER.synthesize("bedroom", "The sofa facing the TV within 20 degrees, a lamp next to the bed")
     assert program_constants(p.code)["FACING_ANGLE_DEG"] == 20 and p.not_understood == []
     assert check_program(p.code) == []
+
+
+#: One constraint per check kind that needs its objects, and the has_<object> checks it must come with.
+NEEDS_OBJECTS_PROMPTS = {
+    "either_side": ("night tables on either side of the bed", {"has_nightstand", "has_bed"}),
+    "side": ("a lamp to the left of the bed", {"has_lamp", "has_bed"}),
+    "in_front": ("a chair in front of the desk", {"has_chair", "has_desk"}),
+    "view": ("view the TV from the sofa", {"has_tv", "has_sofa"}),
+    "facing": ("the sofa facing the TV", {"has_sofa", "has_tv"}),
+    "near": ("a lamp next to the bed", {"has_lamp", "has_bed"}),
+    "turning": ("a 1.2 m turning circle next to the sofa", {"has_sofa"}),
+}
+
+
+@pytest.mark.parametrize("kind", NEEDS_OBJECTS)
+def test_a_check_that_needs_objects_adds_their_existence(kind):
+    """Every object a relation (or a turning circle next to an object) needs gets a has_<object> check of the low
+    IMPLIED_WEIGHT, so a policy without that object already earns credit for adding one."""
+    prompt, implied = NEEDS_OBJECTS_PROMPTS[kind]
+    plan = read_constraint(prompt)
+    assert plan.not_understood == [] and [c.kind for c in plan.checks if c.weight > IMPLIED_WEIGHT] == [kind]
+    assert {c.key for c in plan.checks if c.kind == "exists" and c.weight == IMPLIED_WEIGHT} == implied
+    # the ones an emptier room satisfies, and a turning circle with no object named, need no object
+    assert read_constraint("the sofa at least 2 m away from the TV").checks[0].kind not in NEEDS_OBJECTS
+    assert [c.key for c in read_constraint("a turning circle of 1.5 m").checks] == ["turning_circle"]
+
+
+def test_wheelchair_pays_for_adding_the_bed():
+    """The turning circle must be next to a bed: a room without one scores higher once a bed stands in it, even
+    where the turning circle still fails (the room is too narrow for it) and the paths stay as they were."""
+    narrow = [(0, 0), (1.4, 0), (1.4, 3.0), (0, 3.0)]
+    without, with_bed = run(PROGRAMS["wheelchair"].code, [make_layout([box(label, 0.7, 1.5, 0.5, 0.5, hy=0.3)],
+                                                                      floor=narrow)
+                                                          for label in ("wardrobe", "single_bed")])
+    c = program_constants(PROGRAMS["wheelchair"].code)
+    total = c["W_CLEAR_PATHS"] + c["W_TURNING_CIRCLE"] + c["W_HAS_BED"]
+    assert with_bed - without == pytest.approx(c["W_HAS_BED"] / total, abs=1e-5), (without, with_bed)
 
 
 def test_unknown_words_are_reported_not_guessed():
@@ -295,6 +335,7 @@ def test_emphasis_raises_the_requirement_weights():
     w = [program_constants(p.code) for p in steps]
     assert [c["W_TURNING_CIRCLE"] for c in w] == [2, 2, 4, 8, 8]
     assert [c["W_CLEAR_PATHS"] for c in w] == [2] * 5      # an emptier room satisfies it: not weighed up
+    assert [c["W_HAS_BED"] for c in w] == [0.5, 0.5, 1, 2, 2]  # the bed the turning circle needs
     assert "emphasise" in steps[2].notes and "W_TURNING_CIRCLE 2 -> 4" in steps[2].notes
     assert "cap" in steps[4].notes and steps[4].code == steps[3].code
     assert w[2]["AND_SHARE"] == 0.25 and w[2]["PATH_WIDTH"] == w[1]["PATH_WIDTH"]  # nothing else changes
