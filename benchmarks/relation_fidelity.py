@@ -1,0 +1,68 @@
+"""How well a scene prior (or an RL-tuned adapter) reproduces the object relations the paper's tasks are
+about, next to its training data: beds with the headboard against a wall, where nightstands sit along the
+bed, beds per room, and the five task success rates (hand-written checkers).
+
+    .venv/bin/python benchmarks/relation_fidelity.py                       # prior and shipped stage 1
+    .venv/bin/python benchmarks/relation_fidelity.py --runs out/train/task_two_nightstands
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+
+import numpy as np
+import torch
+
+from iarcs_env import relations as rel
+from iarcs_env.datasets.procedural import generate_layouts
+from iarcs_env.env import default_floors
+from iarcs_env.scene import SceneBatch
+from iarcs_env.tasks import TASKS
+
+
+def relation_row(scenes: SceneBatch) -> dict:
+    """Relation statistics of a batch (see the module docstring)."""
+    spec = scenes.spec
+    bed = rel.class_mask(scenes.labels, spec.classes, ["bed"])
+    nightstand = rel.class_mask(scenes.labels, spec.classes, ["nightstand"])
+    edges = rel.floor_edges(scenes.floors, dtype=torch.float32)
+    back = rel.back_to_wall(scenes.translations, scenes.half_sizes, scenes.yaws, edges)
+    along = rel.local_offset(scenes.translations[..., [0, 2]], scenes.yaws)[..., 1] / scenes.half_sizes[..., 2][..., None]
+    pairs = bed[:, :, None] & nightstand[:, None, :]
+    quartiles = np.quantile(along[pairs].numpy(), [0.25, 0.5, 0.75]) if pairs.any() else [np.nan] * 3
+    row = {"beds / room": float(bed.sum(1).float().mean()),
+           "headboard at a wall %": 100 * float((back[bed] < 0.1).float().mean()) if bed.any() else np.nan,
+           "nightstand along bed (q1, median, q3)": ", ".join(f"{q:+.2f}" for q in quartiles)}
+    row.update({f"{name} %": 100 * float(np.mean(task.check(scenes))) for name, task in TASKS.items()})
+    return row
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--num-scenes", type=int, default=256)
+    parser.add_argument("--seed", type=int, default=777, help="seed of the held-out floors and the data rooms")
+    parser.add_argument("--runs", nargs="*", default=[], help="training run folders whose adapters to add")
+    args = parser.parse_args()
+    torch.set_num_threads(1)
+    from agents.train import load_stage1_policy, load_trained_policy
+
+    rows = {"procedural data": relation_row(SceneBatch.from_layouts(generate_layouts("bedroom", args.num_scenes,
+                                                                                       seed=args.seed)))}
+    floors = default_floors("bedroom", count=args.num_scenes, seed=args.seed)
+    stage1 = load_stage1_policy("bedroom")
+    for name, context in (("prior", stage1.base_policy), ("stage 1", contextlib.nullcontext)):
+        with context():
+            rows[name] = relation_row(stage1.sample(floors, generator=torch.Generator().manual_seed(0)))
+    for run in args.runs:
+        policy, _ = load_trained_policy(run)
+        rows[run] = relation_row(policy.sample(floors, generator=torch.Generator().manual_seed(0)))
+    keys = list(next(iter(rows.values())))
+    print("| scenes | " + " | ".join(keys) + " |\n|---|" + "---|" * len(keys))
+    for name, row in rows.items():
+        print(f"| {name} | " + " | ".join(v if isinstance(v, str) else f"{v:.1f}" if "%" in k else f"{v:.2f}"
+                                          for k, v in row.items()) + " |")
+
+
+if __name__ == "__main__":
+    main()
