@@ -193,8 +193,9 @@ def picture_table(rows: list[dict], pictures: list[Path]) -> str:
 
 def program_section(proposal: dict) -> list[str]:
     """The reward program with its reasoning and decomposition, as Markdown lines."""
-    lines = ["## Reward program", "", f"Written by {proposal['source']}; weight {proposal['weight']:g} next to the "
-             "universal rewards.", "", proposal["reasoning"], "", "Decomposition:",
+    author = "the offline planner" if proposal["source"] == "offline" else proposal["source"]
+    lines = ["## Reward program", "", f"Written by {author}; weight {proposal['weight']:g} next to the "
+             "universal rewards (the run may fix another: see its config).", "", proposal["reasoning"], "", "Decomposition:",
              *[f"- {d}" for d in proposal["decomposition"]]]
     if proposal.get("not_understood"):
         lines += ["", "Not understood (ignored): " + ", ".join(proposal["not_understood"])]
