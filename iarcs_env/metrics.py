@@ -186,6 +186,17 @@ def _batches(layouts: Sequence[Layout], batch_size: int):
         yield batch_float64(layouts[start:start + batch_size])
 
 
+def one_room_type(layouts: Sequence[Layout], verb: str = "evaluate") -> list[Layout]:
+    """The layouts as a list, after checking there are some and that they share one room type."""
+    layouts = list(layouts)
+    if not layouts:
+        raise ValueError(f"no scenes to {verb}")
+    room_types = {get_room(lay.room_type).name for lay in layouts}
+    if len(room_types) > 1:
+        raise ValueError(f"scenes of several room types ({', '.join(sorted(room_types))}); {verb} one at a time")
+    return layouts
+
+
 def evaluate_layouts(layouts: Sequence[Layout], reference: Sequence[Layout] | None = None,
                      cell: float = geo.WALK_CELL, agent_radius: float = geo.AGENT_RADIUS, batch_size: int = 256,
                      keep_scenes: bool = False, keep_masks: bool = False, progress: bool = False,
@@ -200,12 +211,7 @@ def evaluate_layouts(layouts: Sequence[Layout], reference: Sequence[Layout] | No
     ``keep_scenes``, ``"scenes"`` holds the :class:`SceneResult` list (``keep_masks`` adds the unreachable
     masks, in each layout's centred frame).
     """
-    layouts = list(layouts)
-    if not layouts:
-        raise ValueError("no scenes to evaluate")
-    room_types = {get_room(lay.room_type).name for lay in layouts}
-    if len(room_types) > 1:
-        raise ValueError(f"scenes of several room types ({', '.join(sorted(room_types))}); evaluate one at a time")
+    layouts = one_room_type(layouts)
     totals = dict(objects=0, ground=0, colliding=0, scenes_colliding=0, out=0, reachable=0)
     walkable, scenes = [], []
     bar = None
@@ -240,7 +246,7 @@ def evaluate_layouts(layouts: Sequence[Layout], reference: Sequence[Layout] | No
         "n_objects": totals["objects"],
         "n_ground_objects": totals["ground"],
         "mean_objects": totals["objects"] / n,
-        "room_type": room_types.pop(),
+        "room_type": get_room(layouts[0].room_type).name,
         "cell": cell,
         "agent_radius": agent_radius,
     }

@@ -180,13 +180,9 @@ def task_results(task: str | Task, scenes: SceneBatch | Sequence[Layout], batch_
     task = get_task(task)
     if isinstance(scenes, SceneBatch):
         return task.check(scenes)
-    layouts = list(scenes)
-    if not layouts:
-        raise ValueError("no scenes to check")
-    rooms = {get_room(lay.room_type).name for lay in layouts}
-    if len(rooms) > 1:
-        raise ValueError(f"scenes of several room types ({', '.join(sorted(rooms))}); check one at a time")
-    from .metrics import batch_float64  # float64 geometry, as the metrics
+    from .metrics import batch_float64, one_room_type  # float64 geometry, as the metrics
+
+    layouts = one_room_type(scenes, "check")
 
     parts = [task.check(batch_float64(layouts[s:s + batch_size])) for s in range(0, len(layouts), batch_size)]
     return np.concatenate(parts)
