@@ -47,7 +47,6 @@ import torch
 
 from . import relations as rel
 from .geometry import single_thread
-from .rooms import get_room
 from .scene import Layout, SceneBatch
 
 #: Slack on every threshold (m or rad), so that values exactly at a limit pass despite float rounding.
