@@ -129,7 +129,7 @@ def test_generate_trains_once_then_reuses_the_adapter(tmp_path, monkeypatch, cap
     report = (out / "report.md").read_text()
     assert "def reward(scene)" in report and "task success" in report  # the prompt is a paper task's
     metrics = json.loads((out / "metrics.json").read_text())
-    assert set(metrics) == {"prior + stage 1", "with the task adapter"}
+    assert set(metrics) == {"prior", "stage 1", "with the task adapter"}
     assert 0 <= metrics["with the task adapter"]["task_success"] <= 1
     capsys.readouterr()
     assert main(args + ["--out", str(tmp_path / "b")]) == 0

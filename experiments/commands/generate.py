@@ -19,6 +19,8 @@ from pathlib import Path
 from .reward import add_agent_options
 
 TEMPLATE = Path(__file__).resolve().parents[1] / "task_two_nightstands.yaml"
+#: At most this many scenes go into the prior / stage 1 / adapter comparison of the report.
+COMPARED_SCENES = 500
 
 
 def register(sub) -> None:
@@ -69,9 +71,11 @@ def train_adapter(args, room: str, task: str | None, run_dir: Path) -> Path:
 
 
 def cmd_generate(args) -> int:
+    import torch
+
     from agents.denoiser import ScenePrior
     from agents.policy import DiffusionPolicy
-    from agents.train import ADAPTERS_DIR
+    from agents.train import ADAPTERS_DIR, stage1_adapter_path
     from experiments.cli import CLIError
     from iarcs_env.datasets import save_layouts
     from iarcs_env.datasets.atiss import write_atiss_folder
@@ -100,13 +104,22 @@ def cmd_generate(args) -> int:
         shutil.copytree(run_dir / "reward", lib / "reward")
         (lib / "constraint.txt").write_text(args.constraint + "\n")
         print(f"   adapter saved to the library: {lib}")
-    print(f"2/3 sampling {args.num_scenes} scenes with and without the adapter ...")
+    print(f"2/3 sampling {args.num_scenes} scenes, and comparing with the prior and stage 1 ...")
     policy = DiffusionPolicy(ScenePrior.load_default(room), adapter="scratch")
+    variants = [("prior", None)]
+    if (stage1_adapter_path(room) / "adapter_config.json").exists():
+        policy.load_adapter(stage1_adapter_path(room), "stage1")
+        variants.append(("stage 1", "stage1"))
     policy.load_adapter(lib / "adapter", "task")
+    variants.append(("with the task adapter", "task"))
     floors = generation_floors(room, args.num_scenes, args.seed, args.floors)
-    rows = compare_variants(policy, floors, args.seed, [("prior + stage 1", None), ("with the task adapter", "task")],
-                            task)
-    layouts = rows[-1]["layouts"]
+    shown = floors[:COMPARED_SCENES]  # the comparison; every scene is sampled with the adapter
+    rows = compare_variants(policy, shown, args.seed, variants, task)
+    if len(floors) > len(shown):
+        policy.set_adapter("task")
+        layouts = policy.sample(floors, generator=torch.Generator().manual_seed(args.seed)).to_layouts()
+    else:
+        layouts = rows[-1]["layouts"]
     save_layouts(layouts, out / "scenes.json", generator="iarcs generate", constraint=args.constraint, seed=args.seed)
     write_atiss_folder(layouts, out / "atiss")
     table, pictures = write_comparison(out, rows, task)
