@@ -20,7 +20,7 @@ demo: $(STAMP)
 	$(VENV)/bin/iarcs demo --out $(DEMO_OUT)
 
 test: $(STAMP)
-	$(PY) -m pytest tests
+	$(PY) -m pytest -rf tests
 
 bench: $(STAMP)
 	for b in benchmarks/bench_*.py; do $(PY) $$b || exit 1; done
