@@ -102,7 +102,7 @@ def server():
 
 
 def make_client(server, model="openai/test-model", **kw) -> LLMClient:
-    cfg = dict(model=model, api_base=server.url, api_key="test", timeout=1.0, max_retries=2, backoff_base=0.01,
+    cfg = dict(model=model, api_base=server.url, api_key="test", timeout=3.0, max_retries=2, backoff_base=0.01,
                backoff_max=0.05)
     cfg.update(kw)
     return LLMClient(LLMConfig(**cfg))
@@ -246,16 +246,16 @@ def test_no_retry_on_client_errors(server, status, error):
 
 
 def test_timeout_then_success(server):
-    server.push({"sleep": 1.0, "content": "late"}, {"content": "on time"})
-    client = make_client(server, timeout=0.3)
+    server.push({"sleep": 2.0, "content": "late"}, {"content": "on time"})
+    client = make_client(server, timeout=1.0)  # generous for the on-time answer on a busy machine
     assert client.complete([{"role": "user", "content": "hi"}]).text == "on time"
     assert client.usage.retries == 1
 
 
 def test_timeout_gives_up(server):
-    server.push({"sleep": 1.0, "content": "late"}, {"sleep": 1.0, "content": "late"})
-    client = make_client(server, timeout=0.3, max_retries=1)
-    with pytest.raises(LLMTimeoutError, match=r"timeout of 0.3 s \(2 attempts\)"):
+    server.push({"sleep": 1.5, "content": "late"}, {"sleep": 1.5, "content": "late"})
+    client = make_client(server, timeout=0.5, max_retries=1)
+    with pytest.raises(LLMTimeoutError, match=r"timeout of 0.5 s \(2 attempts\)"):
         client.complete([{"role": "user", "content": "hi"}])
 
 
