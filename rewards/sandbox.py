@@ -581,7 +581,7 @@ def _worker_main(config_json: str) -> None:
             glb = {"__builtins__": dict(safe_builtins), "__name__": "reward_program",
                    "torch": modules["torch"], "math": modules["math"]}
             state.update(running=True, phase="loading the program")
-            try:
+            try:  # the one exec of generated code: inside the limited worker, with restricted builtins
                 exec(compile(msg["code"], "<reward>", "exec"), glb)
             finally:
                 state["running"] = False
