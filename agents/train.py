@@ -182,7 +182,7 @@ def run(cfg: TrainConfig, progress: bool = True, log=print):
 
 
 def _setup_task(cfg: TrainConfig, out: Path, resume: Path | None, log) -> dict:
-    """Stage 2: the sandboxed task reward, the agent, the memory and the reflection callback factory."""
+    """Stage 2: the sandboxed task reward, the agent, the memory and the reflection callback."""
     from .stage2 import MEMORY_FILE, ReflectionCallback, setup_task_reward, task_config
 
     tcfg = task_config(cfg.task)
