@@ -18,7 +18,7 @@ TASKS_DIR = Path(__file__).resolve().parents[1]
 
 def register(sub) -> None:
     p = sub.add_parser("demo", help="stage 2 for one task with the offline planner, from the shipped prior and "
-                                    "stage-1 adapter, then a report (about 10 minutes on 2 cores)")
+                                    "stage-1 adapter, then a report (about 5 minutes on 2 cores)")
     p.add_argument("--out", default="out/demo", help="output folder (default out/demo)")
     p.add_argument("--task", default="reach_1m",
                    help="paper task: reach_1m (default), tv_from_bed, study_zone, two_nightstands, wheelchair")
