@@ -40,3 +40,22 @@ def make_layout(objects, floor=((0, 0), (4, 0), (4, 3), (0, 3)), room="bedroom",
 
 
 L_SHAPE = ((0, 0), (4, 0), (4, 2), (2, 2), (2, 4), (0, 4))
+
+
+def write_tiny_train_config(tmp_path: Path, **settings) -> Path:
+    """A training YAML for a tiny bedroom prior (saved beside it): 8 scenes x 4 DDIM steps, 8 floors, so a
+    run takes seconds. ``settings`` override or add TrainConfig fields."""
+    import torch
+    import yaml
+
+    from agents.denoiser import ScenePrior
+    from iarcs_env.env import default_stats
+
+    torch.manual_seed(0)
+    ScenePrior.create("bedroom", default_stats("bedroom"), "tiny").save(tmp_path / "prior.pt")
+    cfg = {"prior": str(tmp_path / "prior.pt"), "num_envs": 8, "num_steps": 4, "num_floors": 8, "eval_floors": 4,
+           "epochs": 2, "eval_every": 1, "ddpo": {"samples_per_floor": 4, "minibatch_size": 8},
+           "out": str(tmp_path / "run"), **settings}
+    path = tmp_path / "train.yaml"
+    path.write_text(yaml.safe_dump(cfg))
+    return path

@@ -4,14 +4,12 @@ the command line around the agent (`iarcs reward synthesize|score`, `iarcs gener
 import json
 
 import pytest
-import torch
 import yaml
 
-from agents.denoiser import ScenePrior
 from experiments.cli import main
-from iarcs_env.env import default_stats
 from rewards.memory import EvolutionMemory
 from rewards.proposal import RewardProposal
+from conftest import write_tiny_train_config
 
 PROMPT = "A bedroom with 2 night tables on either side of the bed"
 
@@ -43,16 +41,8 @@ def test_memory_keeps_attempts_and_outcomes_and_survives_a_restart(tmp_path):
 
 @pytest.fixture
 def tiny_task_config(tmp_path):
-    torch.manual_seed(0)
-    prior = ScenePrior.create("bedroom", default_stats("bedroom"), "tiny")
-    prior.save(tmp_path / "prior.pt")
-    cfg = {"prior": str(tmp_path / "prior.pt"), "adapter": "two_nightstands", "num_envs": 8, "num_steps": 4,
-           "num_floors": 8, "eval_floors": 4, "epochs": 4, "eval_every": 2,
-           "ddpo": {"samples_per_floor": 4, "minibatch_size": 8},
-           "task": {"checker": "two_nightstands", "reflect_every": 2}, "out": str(tmp_path / "run")}
-    path = tmp_path / "task.yaml"
-    path.write_text(yaml.safe_dump(cfg))
-    return path
+    return write_tiny_train_config(tmp_path, adapter="two_nightstands", epochs=4, eval_every=2,
+                                   task={"checker": "two_nightstands", "reflect_every": 2})
 
 
 def test_a_task_run_reflects_records_its_memory_and_resumes_with_it(tiny_task_config, tmp_path, capsys):

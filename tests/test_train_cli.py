@@ -7,26 +7,15 @@ import sys
 import time
 
 import pytest
-import torch
 import yaml
 
-from agents.denoiser import ScenePrior
 from experiments.cli import main
-from iarcs_env.env import default_stats
-from conftest import REPO
+from conftest import REPO, write_tiny_train_config
 
 
 @pytest.fixture
 def tiny_run_config(tmp_path):
-    torch.manual_seed(0)
-    prior = ScenePrior.create("bedroom", default_stats("bedroom"), "tiny")
-    prior.save(tmp_path / "prior.pt")
-    cfg = {"prior": str(tmp_path / "prior.pt"), "num_envs": 8, "num_steps": 4, "num_floors": 8, "eval_floors": 4,
-           "epochs": 2, "eval_every": 1, "ddpo": {"samples_per_floor": 4, "minibatch_size": 8},
-           "out": str(tmp_path / "run")}
-    path = tmp_path / "train.yaml"
-    path.write_text(yaml.safe_dump(cfg))
-    return path
+    return write_tiny_train_config(tmp_path)
 
 
 def test_train_writes_a_complete_run_folder_and_resumes(tiny_run_config, tmp_path, capsys):
