@@ -151,10 +151,13 @@ class NoiseSchedule:
 
     def training_loss(self, model_fn: Callable[[torch.Tensor, torch.Tensor], torch.Tensor], x0: torch.Tensor,
                       generator: torch.Generator | None = None, t: torch.Tensor | None = None,
-                      noise: torch.Tensor | None = None, reduction: str = "mean") -> torch.Tensor:
+                      noise: torch.Tensor | None = None, reduction: str = "mean",
+                      feature_weights: torch.Tensor | None = None) -> torch.Tensor:
         """The DDPM "simple" loss E_{t, eps} || eps - eps_theta(x_t, t) ||^2 (mean over elements).
 
         ``model_fn(x_t, t)`` returns the predicted noise. ``reduction="none"`` gives one loss per scene.
+        ``feature_weights`` (one per feature, broadcast over the last dimension) reweights the squared error
+        of each feature; None is the plain loss.
         """
         b = x0.shape[0]
         if t is None:
@@ -163,6 +166,8 @@ class NoiseSchedule:
             noise = torch.randn(x0.shape, generator=generator, dtype=x0.dtype, device=x0.device)
         x_t = self.q_sample(x0, t, noise)
         err = (model_fn(x_t, t) - noise) ** 2
+        if feature_weights is not None:
+            err = err * feature_weights
         per_scene = err.flatten(1).mean(1)
         return per_scene.mean() if reduction == "mean" else per_scene
 

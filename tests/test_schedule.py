@@ -53,6 +53,19 @@ def test_training_loss_is_zero_for_a_perfect_model_and_one_for_zero():
     assert zero.shape == (3,) and torch.allclose(zero, (noise**2).flatten(1).mean(1))
 
 
+def test_feature_weights_scale_the_squared_error_of_their_features_only():
+    s = NoiseSchedule()
+    x0, noise = torch.rand(SHAPE) * 2 - 1, torch.randn(SHAPE)
+    weights = torch.ones(SHAPE[-1])
+    weights[[0, 2]] = 10.0
+    plain = s.training_loss(lambda x, t: torch.zeros_like(x), x0, noise=noise, reduction="none")
+    weighted = s.training_loss(lambda x, t: torch.zeros_like(x), x0, noise=noise, reduction="none",
+                               feature_weights=weights)
+    extra = 9.0 * (noise[..., [0, 2]] ** 2).sum(-1).sum(-1) / noise[0].numel()
+    assert torch.allclose(weighted, plain + extra, atol=1e-5)
+    assert s.training_loss(lambda x, t: noise, x0, noise=noise, feature_weights=weights).item() == 0.0
+
+
 @pytest.mark.parametrize("steps", [1, 7, 20, 50, 1000])
 def test_set_timesteps_any_number_descending_to_zero(steps):
     s = NoiseSchedule()
