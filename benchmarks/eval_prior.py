@@ -15,7 +15,8 @@ object counts), plus ``iarcs_env.datasets.realism``'s object-count TVD and class
 prior's training data; another seed = held-out rooms). ``--floor-usage`` also measures how much the prior
 uses its floor condition: the epsilon loss on the reference rooms with their own floors, with every room
 given the next room's floor, and with the all-zero (unconditional) floor (the same t and noise), and
-R_out of the samples checked against their own floors and against the next room's. Nothing is written into the repository unless
+R_out of the samples checked against their own floors and against the next room's, and the epsilon MSE of the
+translation x, z features alone at t = 10, 50, 100, 300 with each of the three floors. Nothing is written into the repository unless
 ``--json`` / ``--markdown`` point there; real rooms are only read.
 """
 
@@ -72,10 +73,17 @@ def floor_usage(prior: ScenePrior, reference: list, gen: list | None = None) -> 
     data = SceneTensors.from_layouts(reference, prior.num_slots)
     x0, floor = encode_batch(prior.spec, prior.stats, *data.batch(torch.arange(len(data))))
     out = {}
-    for name, fl in (("loss_own_floor", floor), ("loss_next_floor", floor.roll(1, 0)),
-                     ("loss_zero_floor", torch.zeros_like(floor))):
+    floors = {"own_floor": floor, "next_floor": floor.roll(1, 0), "zero_floor": torch.zeros_like(floor)}
+    for name, fl in floors.items():
         g = torch.Generator().manual_seed(1234)
-        out[name] = float(prior.schedule.training_loss(lambda x, t: net(x, t, fl), x0, g))
+        out[f"loss_{name}"] = float(prior.schedule.training_loss(lambda x, t: net(x, t, fl), x0, g))
+    # the translation x, z part of the loss at fixed small t, where objects get placed against the walls
+    for t in (10, 50, 100, 300):
+        noise = torch.randn(x0.shape, generator=torch.Generator().manual_seed(t))
+        tt = torch.full((x0.shape[0],), t)
+        x_t = prior.schedule.q_sample(x0, tt, noise)
+        for name, fl in floors.items():
+            out[f"xz_loss_t{t}_{name}"] = float((net(x_t, tt, fl) - noise)[..., [0, 2]].pow(2).mean())
     if gen is not None:
         floors = [lay.centred().floor for lay in reference]
         swapped = []
