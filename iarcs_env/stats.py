@@ -23,7 +23,8 @@ class DatasetStats:
     """Bounds and frequencies of one room type's training data.
 
     ``bounds_translations`` and ``bounds_sizes`` are ``[min_x, min_y, min_z, max_x, max_y, max_z]``;
-    ``bounds_angles`` is ``[min, max]``; ``object_count_histogram[k]`` counts rooms with k objects.
+    ``bounds_angles`` is ``[min, max]``; ``object_count_histogram[k]`` counts rooms with k objects;
+    ``class_presence[c]`` is the fraction of rooms with at least one object of class c.
     """
 
     room_type: str
@@ -33,6 +34,7 @@ class DatasetStats:
     class_frequencies: dict[str, float] = field(default_factory=dict)
     count_furniture: dict[str, int] = field(default_factory=dict)
     object_count_histogram: list[int] = field(default_factory=list)
+    class_presence: dict[str, float] = field(default_factory=dict)
 
     @property
     def spec(self):
@@ -65,13 +67,14 @@ class DatasetStats:
         if not layouts:
             raise ValueError("cannot compute dataset statistics from no layouts")
         spec = get_room(room_type or layouts[0].room_type)
-        trans, sizes, counts, labels = [], [], [], []
+        trans, sizes, counts, labels, present = [], [], [], [], Counter()
         for lay in layouts:
             c = lay.centred()
             trans.append(c.translations)
             sizes.append(c.half_sizes)
             counts.append(len(c))
             labels.extend(c.labels)
+            present.update(set(c.labels))
         t = np.concatenate(trans) if labels else np.zeros((1, 3))
         s = np.concatenate(sizes) if labels else np.full((1, 3), 0.5)
         t_lo, t_hi = t.min(0) - margin, t.max(0) + margin
@@ -86,6 +89,7 @@ class DatasetStats:
             class_frequencies={c: counter.get(c, 0) / total for c in spec.classes},
             count_furniture={c: int(counter.get(c, 0)) for c in spec.classes},
             object_count_histogram=[int(v) for v in hist],
+            class_presence={c: present.get(c, 0) / len(layouts) for c in spec.classes},
         )
 
     # --- dataset_stats.txt ------------------------------------------------------------------------------
@@ -102,6 +106,7 @@ class DatasetStats:
             "count_furniture": sorted(self.count_furniture.items(), key=lambda kv: -kv[1]),
             "room_type": self.room_type,
             "object_count_histogram": self.object_count_histogram,
+            "class_presence": self.class_presence,
         }
 
     @classmethod
@@ -121,6 +126,7 @@ class DatasetStats:
             class_frequencies={k: float(v) for k, v in data.get("class_frequencies", {}).items()},
             count_furniture={k: int(v) for k, v in count.items()},
             object_count_histogram=[int(v) for v in data.get("object_count_histogram", [])],
+            class_presence={k: float(v) for k, v in data.get("class_presence", {}).items()},
         )
 
     def save(self, path: str | Path) -> None:

@@ -11,8 +11,8 @@ import shapely_reference as ref
 from iarcs_env.metrics import batch_float64
 from iarcs_env.scene import SceneBatch
 from iarcs_env.stats import DatasetStats
-from rewards import (REWARDS, CompositeReward, accessibility_reward, boundary_reward, collision_reward,
-                     object_count_reward, register_reward)
+from rewards import (REWARDS, CompositeReward, accessibility_reward, boundary_reward, class_presence_reward,
+                     collision_reward, object_count_reward, register_reward)
 from scene_factory import L_SHAPE, box, make_layout, random_layouts
 
 
@@ -72,6 +72,27 @@ def test_object_count_prior_kl_and_log_prob():
     assert logp[4] < logp[:4].min()
     with pytest.raises(ValueError, match="statistics"):
         object_count_reward(SceneBatch.from_layouts(train[:2]))
+
+
+def test_class_presence_prior_is_the_bernoulli_log_likelihood_of_the_classes_present():
+    bed, stand = box("double_bed", 0.0, 0.0, 1.0, 1.1), box("nightstand", 1.4, -0.8, 0.25, 0.25)
+    train = [make_layout([bed, stand])] * 3 + [make_layout([stand])]
+    stats = DatasetStats.from_layouts(train)
+    assert stats.class_presence["double_bed"] == 0.75 and stats.class_presence["nightstand"] == 1.0
+    assert DatasetStats.from_json(stats.to_json()).class_presence == stats.class_presence
+    scenes = SceneBatch.from_layouts([make_layout([bed, stand]), make_layout([stand]), make_layout([bed])],
+                                     num_slots=12)
+    r = class_presence_reward(scenes, stats=stats, eps=1e-3)
+    absent = sum(np.log(1 - 1e-3) for c, p in stats.class_presence.items() if p == 0)  # every other class
+    expected = [np.log(0.75) + np.log(1 - 1e-3), np.log(0.25) + np.log(1 - 1e-3), np.log(0.75) + np.log(1e-3)]
+    np.testing.assert_allclose(r.numpy(), np.array(expected) + absent, rtol=1e-5)
+    assert r[0] > r[1] > r[2]  # dropping the bed costs log(0.75 / 0.25); dropping the nightstand far more
+    own = class_presence_reward(scenes, class_presence={"double_bed": 0.5})
+    assert own[0] == pytest.approx(own[1].item(), abs=1e-5)  # bed 50/50, nightstand unknown = rare
+    with pytest.raises(ValueError, match="class_presence"):
+        class_presence_reward(scenes, stats=DatasetStats("bedroom", [0] * 6, [0] * 6))
+    with pytest.raises(ValueError, match="sofa_bed"):
+        class_presence_reward(scenes, class_presence={"sofa_bed": 0.5})
 
 
 @pytest.mark.parametrize("seed", [0, 1])
