@@ -73,8 +73,8 @@ def floor_usage(prior: ScenePrior, reference: list, gen: list | None = None) -> 
     data = SceneTensors.from_layouts(reference, prior.num_slots)
     x0, floor = encode_batch(prior.spec, prior.stats, *data.batch(torch.arange(len(data))))
     out = {}
-    floors = {"own_floor": floor, "next_floor": floor.roll(1, 0), "zero_floor": torch.zeros_like(floor)}
-    for name, fl in floors.items():
+    conditions = {"own_floor": floor, "next_floor": floor.roll(1, 0), "zero_floor": torch.zeros_like(floor)}
+    for name, fl in conditions.items():
         g = torch.Generator().manual_seed(1234)
         out[f"loss_{name}"] = float(prior.schedule.training_loss(lambda x, t: net(x, t, fl), x0, g))
     # the translation x, z part of the loss at fixed small t, where objects get placed against the walls
@@ -82,7 +82,7 @@ def floor_usage(prior: ScenePrior, reference: list, gen: list | None = None) -> 
         noise = torch.randn(x0.shape, generator=torch.Generator().manual_seed(t))
         tt = torch.full((x0.shape[0],), t)
         x_t = prior.schedule.q_sample(x0, tt, noise)
-        for name, fl in floors.items():
+        for name, fl in conditions.items():
             out[f"xz_loss_t{t}_{name}"] = float((net(x_t, tt, fl) - noise)[..., [0, 2]].pow(2).mean())
     if gen is not None:
         floors = [lay.centred().floor for lay in reference]
