@@ -20,4 +20,9 @@ print("| metric | prior | stage 1 | change |\n|---|---|---|---|")
 for k in ("Col_obj", "Col_scene", "R_out", "R_reach", "R_walkable"):
     print(f"| {k} | {b[k]:.4f} | {s[k]:.4f} | {100 * (s[k] - b[k]) / max(b[k], 1e-9):+.1f}% |")
 print(f"| class KL to the prior's samples | – | {s['KL_class']:.4f} | |")
+for name in ("base", "stage1"):  # the class most at risk of being dropped: beds (double, single, kids)
+    scenes = json.load(open(f"{out}/{name}.json"))["scenes"]
+    objects = [o["label"] for sc in scenes for o in sc["objects"]]
+    print(f"{name}: {len(objects) / len(scenes):.2f} objects / room, "
+          f"{sum(lbl.endswith('bed') for lbl in objects) / len(scenes):.2f} beds / room")
 PY
