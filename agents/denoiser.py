@@ -19,7 +19,10 @@ Network, for x_t of shape (B, N, 8 + K) (N object slots; geometry 8 = translatio
   points: offset to the nearest point, its inward normal and the signed distance along that normal, and
   the same for the nearest point of another wall (normal > 60 degrees away): 10 numbers through an MLP
   added to the slot embedding. Without them the network had to infer wall distances from dot-product
-  attention, and trained priors ignored the floor entirely (the same loss with shuffled floors);
+  attention, and trained priors ignored the floor entirely (the same loss with shuffled floors). With
+  ``room_frame`` (slot translations in the room frame of :class:`iarcs_env.stats.DatasetStats`) they are
+  measured in that frame, with the floor's half-extents (2 more numbers) so that metric distances can be
+  recovered;
 * timestep: sinusoidal embedding -> MLP; plus, with ``floor_adaln``, a linear map of the global floor
   feature, so the adaptive layer norm of every sub-layer is modulated by the room shape; it drives
   shift / scale / gate per sub-layer (zero-initialised as in DiT's adaLN-Zero);
@@ -36,16 +39,16 @@ concatenated for classifier-free guidance.
 Unconditional predictions (classifier-free guidance, condition dropout in training) use an all-zero floor
 input, which no real floor produces (its normals are unit vectors).
 
-The dataclass defaults of the three floor options (``floor_point_tokens=0``, ``floor_adaln=False``,
-``floor_slot_features=False``) are the original design, so checkpoints written before these fields
-existed load unchanged; the ``paper`` and ``small`` presets switch all three on.
+The dataclass defaults of the floor options (``floor_point_tokens=0``, ``floor_adaln=False``,
+``floor_slot_features=False``, ``room_frame=False``) are the original design, so checkpoints written before
+these fields existed load unchanged; the ``paper`` and ``small`` presets switch all four on.
 """
 
 from __future__ import annotations
 
 import math
 import os
-from dataclasses import asdict, dataclass, fields
+from dataclasses import asdict, dataclass, fields, replace
 from pathlib import Path
 from typing import Sequence
 
@@ -97,6 +100,10 @@ class DenoiserConfig:
     ``floor_point_tokens`` boundary points, that point's inward normal and the signed distance along it,
     and the same for the nearest point of another wall (normals more than 60 degrees apart), through an
     MLP added to the slot embedding (needs ``floor_point_tokens`` > 0; False: the original design)."""
+    room_frame: bool = False
+    """The slot translations (x, z) are in the ``"room"`` frame (divided by the floor's half-extents, walls
+    of a rectangular room at +-1), the ``translation_frame`` of the prior's DatasetStats; the wall
+    features are then measured in that frame too. False: the ``"dataset"`` frame (the original design)."""
 
     def __post_init__(self):
         self.pointnet = tuple(int(v) for v in self.pointnet)
@@ -115,19 +122,19 @@ class DenoiserConfig:
     def paper(cls) -> "DenoiserConfig":
         """iARCS / MiDiffusion size: 8 layers, width 512, 4 heads, feed-forward 2048, dropout 0.1, PointNet
         [4, 64, 64, 512, 64]; floor conditioning through adaLN and 64 per-point tokens as in ``small``."""
-        return cls(floor_point_tokens=64, floor_adaln=True, floor_slot_features=True)
+        return cls(floor_point_tokens=64, floor_adaln=True, floor_slot_features=True, room_frame=True)
 
     @classmethod
     def small(cls) -> "DenoiserConfig":
         """CPU default: a 20-step DDIM rollout of 32 bedrooms in about a second on 2 cores."""
         return cls(num_layers=6, width=128, num_heads=4, ff_dim=512, dropout=0.0, floor_point_tokens=64,
-                   floor_adaln=True, floor_slot_features=True)
+                   floor_adaln=True, floor_slot_features=True, room_frame=True)
 
     @classmethod
     def tiny(cls) -> "DenoiserConfig":
         """For tests only."""
         return cls(num_layers=1, width=32, num_heads=2, ff_dim=64, dropout=0.0, pointnet=(4, 16, 32, 16),
-                   floor_tokens=2, floor_point_tokens=8, floor_adaln=True, floor_slot_features=True)
+                   floor_tokens=2, floor_point_tokens=8, floor_adaln=True, floor_slot_features=True, room_frame=True)
 
     @classmethod
     def from_preset(cls, name: str, **overrides) -> "DenoiserConfig":
@@ -220,6 +227,7 @@ class PointNetEncoder(nn.Module):
 
 
 WALL_FEATURES = 10  # SceneDenoiser.wall_features: (offset 2, normal 2, signed distance 1) x 2 walls
+ROOM_FRAME_FEATURES = 2  # ... plus the floor's half-extents (x, z) in the room frame
 
 
 def point_subset(num_points: int, k: int, device=None) -> torch.Tensor:
@@ -263,7 +271,7 @@ class SceneDenoiser(nn.Module):
         if config.floor_adaln:
             self.floor_adaln = nn.Linear(g, d)
         if config.floor_slot_features:
-            self.wall_embed = nn.Sequential(nn.Linear(WALL_FEATURES, d), nn.GELU(), nn.Linear(d, d))
+            self.wall_embed = nn.Sequential(nn.Linear(self.num_wall_features, d), nn.GELU(), nn.Linear(d, d))
         self.blocks = nn.ModuleList(DenoiserBlock(config) for _ in range(config.num_layers))
         self.final_norm = nn.LayerNorm(d, elementwise_affine=False, eps=1e-6)
         self.final_ada = nn.Sequential(nn.SiLU(), nn.Linear(d, 2 * d))
@@ -271,6 +279,15 @@ class SceneDenoiser(nn.Module):
         for lin in (self.final_ada[1], self.out):
             nn.init.zeros_(lin.weight)
             nn.init.zeros_(lin.bias)
+
+    @property
+    def num_wall_features(self) -> int:
+        return WALL_FEATURES + ROOM_FRAME_FEATURES * int(self.config.room_frame)
+
+    def _packed_floor_size(self) -> int:
+        """Numbers of the raw floor packed at the end of the context: the (x, z, nx, nz) of the point
+        subset, plus the floor's half-extents in the room frame."""
+        return 4 * self.config.floor_point_tokens + ROOM_FRAME_FEATURES * int(self.config.room_frame)
 
     def encode_floor(self, floor: torch.Tensor) -> torch.Tensor:
         """Floor condition (B, P, 4) -> context (B, [1 +] floor_tokens + point tokens, width): with
@@ -290,16 +307,23 @@ class SceneDenoiser(nn.Module):
             ctx = torch.cat([self.floor_adaln(f)[:, None], ctx], 1)
         if cfg.floor_slot_features:  # the raw (x, z, nx, nz) of the subset, packed into rows of width d
             raw = floor[:, point_subset(p, cfg.floor_point_tokens, floor.device)].reshape(b, -1)
+            if cfg.room_frame:  # half-extents of the scaled floor, over all its points (centred floors)
+                raw = torch.cat([raw, floor[..., :2].abs().amax(1)], 1)
             rows = -(-raw.shape[1] // cfg.width)
             ctx = torch.cat([ctx, F.pad(raw, (0, rows * cfg.width - raw.shape[1])).view(b, rows, cfg.width)], 1)
         return ctx
 
-    def wall_features(self, x: torch.Tensor, points: torch.Tensor) -> torch.Tensor:
-        """(B, N, WALL_FEATURES): each slot's (x, z) relative to the nearest boundary point q1 (offset,
+    def wall_features(self, x: torch.Tensor, points: torch.Tensor, extents: torch.Tensor | None = None
+                      ) -> torch.Tensor:
+        """(B, N, num_wall_features): each slot's (x, z) relative to the nearest boundary point q1 (offset,
         q1's inward normal, signed distance along it) and to the nearest point q2 whose normal differs from
-        q1's by more than 60 degrees (another wall; q1 again when there is none)."""
-        p = x[..., [0, 2]]  # scaled translation x, z: the same scaling as the floor points' x, z
+        q1's by more than 60 degrees (another wall; q1 again when there is none). With ``extents`` (B, 2),
+        the scaled floor's half-extents, the points are taken into the room frame of the slots and the
+        extents are appended."""
+        p = x[..., [0, 2]]  # scaled translation x, z
         q, n = points[..., :2], points[..., 2:]
+        if extents is not None:  # slots in the room frame: the floor points too
+            q = q / extents.clamp_min(1e-2)[:, None]
         d2 = (p[:, :, None] - q[:, None]).pow(2).sum(-1)  # (B, N, K)
         j1 = d2.argmin(-1)
         n1 = torch.gather(n, 1, j1[..., None].expand(-1, -1, 2))
@@ -311,6 +335,8 @@ class SceneDenoiser(nn.Module):
             nj = torch.gather(n, 1, j[..., None].expand(-1, -1, 2))
             off = p - qj
             feats += [off, nj, (off * nj).sum(-1, keepdim=True)]
+        if extents is not None:
+            feats.append(extents[:, None].expand(-1, p.shape[1], -1))
         return torch.cat(feats, -1)
 
     def forward(self, x: torch.Tensor, t: torch.Tensor, floor: torch.Tensor | None = None,
@@ -333,10 +359,12 @@ class SceneDenoiser(nn.Module):
             floor_context = floor_context[:, 1:]
         if self.config.floor_slot_features:
             k = self.config.floor_point_tokens
-            rows = -(-4 * k // self.config.width)
-            points = floor_context[:, -rows:].reshape(b, -1)[:, :4 * k].view(b, k, 4)
+            rows = -(-self._packed_floor_size() // self.config.width)
+            raw = floor_context[:, -rows:].reshape(b, -1)
+            points = raw[:, :4 * k].view(b, k, 4)
+            extents = raw[:, 4 * k:4 * k + ROOM_FRAME_FEATURES] if self.config.room_frame else None
             floor_context = floor_context[:, :-rows]
-            h = h + self.wall_embed(self.wall_features(x, points))
+            h = h + self.wall_embed(self.wall_features(x, points, extents))
         for block in self.blocks:
             h = block(h, temb, floor_context)
         shift, scale = self.final_ada(temb).chunk(2, dim=-1)
@@ -361,7 +389,7 @@ class SceneDenoiser(nn.Module):
         )
         macs += c.num_layers * per_block + 2 * d * d + n * d * k
         if c.floor_slot_features:
-            macs += n * (WALL_FEATURES * d + d * d)
+            macs += n * (self.num_wall_features * d + d * d)
         if include_floor:
             w = list(c.pointnet)
             macs += num_points * sum(a * b for a, b in zip(w[:-2], w[1:-1])) + w[-2] * w[-1]
@@ -393,14 +421,21 @@ class ScenePrior:
         if denoiser.feature_dim != self.spec.feature_dim:
             raise ValueError(f"denoiser has {denoiser.feature_dim} features per slot but {self.spec.name} "
                              f"needs {self.spec.feature_dim}")
+        if denoiser.config.room_frame != (stats.translation_frame == "room"):
+            raise ValueError(
+                f"the denoiser expects translations in the {'room' if denoiser.config.room_frame else 'dataset'} "
+                f"frame but the statistics say {stats.translation_frame!r}: set DatasetStats.translation_frame "
+                "to match DenoiserConfig.room_frame (ScenePrior.create does this)")
         self.schedule = schedule or NoiseSchedule()
         self.meta = dict(meta or {})
 
     @classmethod
     def create(cls, room: str | RoomSpec, stats: DatasetStats, preset: str | DenoiserConfig = "small",
                schedule: NoiseSchedule | None = None, **overrides) -> "ScenePrior":
+        """A new (untrained) prior; the statistics take the translation frame of the denoiser's config."""
         spec = get_room(room)
         cfg = preset if isinstance(preset, DenoiserConfig) else DenoiserConfig.from_preset(preset, **overrides)
+        stats = replace(stats, translation_frame="room" if cfg.room_frame else "dataset")
         return cls(SceneDenoiser(cfg, spec.feature_dim), stats, schedule)
 
     @property

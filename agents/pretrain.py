@@ -28,7 +28,7 @@ import numpy as np
 import torch
 
 from iarcs_env.rooms import get_room
-from iarcs_env.scene import Layout, SceneBatch
+from iarcs_env.scene import Layout, SceneBatch, floor_half_extents, scale_floor_points
 from iarcs_env.schedule import NoiseSchedule
 from iarcs_env.stats import DatasetStats
 
@@ -155,12 +155,13 @@ class SceneTensors:
     half_sizes: torch.Tensor  # (S, N, 3)
     yaws: torch.Tensor  # (S, N)
     floor_points: torch.Tensor  # (S, P, 4): x, z, nx, nz in metres
+    extents: torch.Tensor  # (S, 2): the floors' half-extents (x, z) in metres
 
     @classmethod
     def from_layouts(cls, layouts: Sequence[Layout], num_slots: int, num_points: int = 256) -> "SceneTensors":
         b = SceneBatch.from_layouts(layouts, num_slots=num_slots)
         pts = torch.tensor(np.stack([f.boundary_points(num_points) for f in b.floors]), dtype=torch.float32)
-        return cls(b.labels, b.translations, b.half_sizes, b.yaws, pts)
+        return cls(b.labels, b.translations, b.half_sizes, b.yaws, pts, floor_half_extents(b.floors))
 
     def __len__(self) -> int:
         return self.labels.shape[0]
@@ -168,9 +169,10 @@ class SceneTensors:
     def batch(self, idx: torch.Tensor, generator: torch.Generator | None = None, rotate: bool = False,
               permute: bool = False):
         """Metric tensors of scenes ``idx``, optionally rotated by random multiples of 90 degrees about +y
-        and with shuffled slots. Returns (labels, translations, half_sizes, yaws, floor_points)."""
+        and with shuffled slots. Returns (labels, translations, half_sizes, yaws, floor_points, extents)."""
         labels, trans = self.labels[idx], self.translations[idx].clone()
         half, yaws, pts = self.half_sizes[idx], self.yaws[idx].clone(), self.floor_points[idx].clone()
+        extents = self.extents[idx].clone()
         b, n = labels.shape
         if rotate:
             k = torch.randint(0, 4, (b,), generator=generator)
@@ -181,13 +183,14 @@ class SceneTensors:
             pts[..., 2:4] = rotate_xz_tensor(pts[..., 2:4], c[:, None], s[:, None])
             yaws = yaws + ang[:, None]
             yaws = (yaws + math.pi) % (2 * math.pi) - math.pi
+            extents = torch.where((k % 2 == 1)[:, None], extents.flip(-1), extents)  # 90 degrees swap x, z
         if permute:
             perm = torch.rand(b, n, generator=generator).argsort(1)
             labels = labels.gather(1, perm)
             trans = trans.gather(1, perm[..., None].expand(-1, -1, 3))
             half = half.gather(1, perm[..., None].expand(-1, -1, 3))
             yaws = yaws.gather(1, perm)
-        return labels, trans, half, yaws, pts
+        return labels, trans, half, yaws, pts, extents
 
 
 def rotate_xz_tensor(p: torch.Tensor, c: torch.Tensor, s: torch.Tensor) -> torch.Tensor:
@@ -196,16 +199,9 @@ def rotate_xz_tensor(p: torch.Tensor, c: torch.Tensor, s: torch.Tensor) -> torch
     return torch.stack([c * x + s * z, -s * x + c * z], -1)
 
 
-def scale_floor_points(pts: torch.Tensor, stats: DatasetStats) -> torch.Tensor:
-    """Metric boundary points (B, P, 4) -> model floor features, as :func:`iarcs_env.scene.floor_features`."""
-    lo, hi = stats.translation_bounds(pts)
-    xz = 2 * (pts[..., :2] - lo[[0, 2]]) / (hi[[0, 2]] - lo[[0, 2]]) - 1
-    return torch.cat([xz, pts[..., 2:]], -1)
-
-
-def encode_batch(spec, stats: DatasetStats, labels, trans, half, yaws, pts):
-    """(x0 features (B, N, 8+K), floor features (B, P, 4))."""
-    x0 = SceneBatch(spec, labels, trans, half, yaws, floors=[]).encode(stats)
+def encode_batch(spec, stats: DatasetStats, labels, trans, half, yaws, pts, extents):
+    """(x0 features (B, N, 8+K), floor features (B, P, 4)) of metric tensors (see :meth:`SceneTensors.batch`)."""
+    x0 = SceneBatch(spec, labels, trans, half, yaws, floors=[]).encode(stats, extents)
     return x0, scale_floor_points(pts, stats)
 
 
@@ -301,6 +297,7 @@ def train(cfg: PretrainConfig, layouts: Sequence[Layout] | None = None, max_step
         stats = DatasetStats.from_json(saved["stats"], spec.name)
     else:
         stats = stats_for_training(train_layouts, spec.name, cfg.rotation_augment)
+        stats.translation_frame = "room" if cfg.denoiser_config().room_frame else "dataset"
         stats.save(out / "dataset_stats.json")
         _write_yaml(out / "config.yaml", asdict(cfg))
     data = SceneTensors.from_layouts(train_layouts, spec.max_objects)

@@ -5,9 +5,12 @@ Conventions (ATISS / ThreedFront): y is up, the floor is the x-z plane, ``yaw`` 
 ``R_y = [[c, 0, s], [0, 1, 0], [-s, 0, c]]``, ``half_sizes`` are half extents along the object's own
 axes, and in a :class:`SceneBatch` translations are relative to the floor plan's bounding-box centre.
 
-Model features per slot (8 + K numbers): translation (3) and half size (3) scaled to [-1, 1] with the
-dataset bounds, ``[cos(yaw), sin(yaw)]``, and the class one-hot over ``classes + [empty]`` mapped to
-{-1, +1}. Unused slots are class ``empty`` with geometry 0 in scaled space.
+Model features per slot (8 + K numbers): translation (3) and half size (3) scaled to [-1, 1],
+``[cos(yaw), sin(yaw)]``, and the class one-hot over ``classes + [empty]`` mapped to {-1, +1}. Unused
+slots are class ``empty`` with geometry 0 in scaled space. Sizes and the height use the dataset bounds;
+the floor-plane translations (x, z) use, in the default ``"room"`` frame of :class:`DatasetStats`, the
+room's own floor half-extent (walls of a rectangular room at +-1), or the dataset bounds in the
+``"dataset"`` frame of ATISS / MiDiffusion.
 """
 
 from __future__ import annotations
@@ -192,9 +195,12 @@ class SceneBatch:
         return out
 
     # --- model features --------------------------------------------------------------------------------
-    def encode(self, stats: "DatasetStats") -> torch.Tensor:
-        """Model features ``x_0`` of shape (B, N, 8 + K); geometry is clipped to the dataset bounds."""
-        t_lo, t_hi = stats.translation_bounds(self.translations)
+    def encode(self, stats: "DatasetStats", extents: torch.Tensor | None = None) -> torch.Tensor:
+        """Model features ``x_0`` of shape (B, N, 8 + K); geometry is clipped to [-1, 1]. ``extents`` (B, 2)
+        are the floors' half-extents (default: from ``floors``; see :func:`floor_half_extents`)."""
+        if extents is None and stats.translation_frame == "room" and len(self.floors) == self.batch_size:
+            extents = floor_half_extents(self.floors)
+        t_lo, t_hi = translation_scale(stats, self.translations, extents)
         s_lo, s_hi = stats.size_bounds(self.half_sizes)
         t = (2 * (self.translations - t_lo) / (t_hi - t_lo) - 1).clamp(-1, 1)
         s = (2 * (self.half_sizes - s_lo) / (s_hi - s_lo) - 1).clamp(-1, 1)
@@ -210,8 +216,11 @@ class SceneBatch:
         spec = get_room(stats.room_type)
         if x.shape[-1] != spec.feature_dim:
             raise ValueError(f"{spec.name} features have {spec.feature_dim} numbers per slot; got {x.shape[-1]}")
+        if len(floors) != x.shape[0]:
+            raise ValueError(f"decoding {x.shape[0]} scenes needs as many floor plans; got {len(floors)}")
         x = x.detach().float()
-        t_lo, t_hi = stats.translation_bounds(x)
+        extents = floor_half_extents(floors) if stats.translation_frame == "room" else None
+        t_lo, t_hi = translation_scale(stats, x, extents)
         s_lo, s_hi = stats.size_bounds(x)
         g = x[..., :6].clamp(-1, 1)
         trans = (g[..., 0:3] + 1) / 2 * (t_hi - t_lo) + t_lo
@@ -223,11 +232,40 @@ class SceneBatch:
         return cls(spec, labels, trans, half, yaws, list(floors), list(ids or []))
 
 
+def floor_half_extents(floors: Sequence[FloorPlan]) -> torch.Tensor:
+    """(B, 2) half width (x) and half depth (z) of each floor's bounding box, in metres: the scale of the
+    ``"room"`` translation frame (a floor centred on its bounding box spans [-e, e] on each axis)."""
+    b = np.array([f.bounds for f in floors], dtype=np.float64).reshape(-1, 4)
+    return torch.tensor(np.maximum((b[:, 2:] - b[:, :2]) / 2, 1e-3), dtype=torch.float32)
+
+
+def translation_scale(stats: "DatasetStats", like: torch.Tensor,
+                      extents: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+    """(lo, hi) that map translations linearly onto [-1, 1]: the dataset bounds (3,), or in the ``"room"``
+    frame per-scene bounds (B, 1, 3) whose x and z are -+ the floor half-extents ``extents`` (B, 2)."""
+    lo, hi = stats.translation_bounds(like)
+    if stats.translation_frame == "dataset":
+        return lo, hi
+    if extents is None:
+        raise ValueError("room-frame features need the floors' half-extents: build the SceneBatch with its "
+                         "floor plans, or pass extents=floor_half_extents(floors)")
+    e = extents.to(device=like.device, dtype=like.dtype)
+    lo = torch.stack([-e[:, 0], lo[1].expand(len(e)), -e[:, 1]], -1)
+    hi = torch.stack([e[:, 0], hi[1].expand(len(e)), e[:, 1]], -1)
+    return lo[:, None], hi[:, None]
+
+
 def floor_features(floors: Sequence[FloorPlan], stats: "DatasetStats", n_points: int = 256) -> torch.Tensor:
-    """Floor condition (B, n_points, 4): boundary points (x, z) scaled with the translation bounds, and
-    their unit inward normals (nx, nz)."""
+    """Floor condition (B, n_points, 4) of centred floors: boundary points and their unit inward normals,
+    see :func:`scale_floor_points`."""
     pts = torch.tensor(np.stack([f.boundary_points(n_points) for f in floors]), dtype=torch.float32)
+    return scale_floor_points(pts, stats)
+
+
+def scale_floor_points(pts: torch.Tensor, stats: "DatasetStats") -> torch.Tensor:
+    """Metric boundary points (B, P, 4) as (x, z, nx, nz) -> floor condition: (x, z) scaled with the
+    dataset's translation bounds in either translation frame (so the condition carries the room's size),
+    normals unchanged."""
     lo, hi = stats.translation_bounds(pts)
-    xz_lo, xz_hi = lo[[0, 2]], hi[[0, 2]]
-    xz = 2 * (pts[..., :2] - xz_lo) / (xz_hi - xz_lo) - 1
+    xz = 2 * (pts[..., :2] - lo[[0, 2]]) / (hi[[0, 2]] - lo[[0, 2]]) - 1
     return torch.cat([xz, pts[..., 2:]], -1)

@@ -16,6 +16,9 @@ from .rooms import EMPTY, get_room
 
 #: ATISS appends these tokens to the class list in dataset_stats.txt and the boxes.npz one-hots.
 ATISS_EXTRA_TOKENS = ("start", "end")
+#: How model features scale the floor-plane translations: by each room's floor half-extent, or by the
+#: dataset bounds (see :class:`DatasetStats`).
+TRANSLATION_FRAMES = ("room", "dataset")
 
 
 @dataclass
@@ -25,6 +28,12 @@ class DatasetStats:
     ``bounds_translations`` and ``bounds_sizes`` are ``[min_x, min_y, min_z, max_x, max_y, max_z]``;
     ``bounds_angles`` is ``[min, max]``; ``object_count_histogram[k]`` counts rooms with k objects;
     ``class_presence[c]`` is the fraction of rooms with at least one object of class c.
+
+    ``translation_frame`` says how the model features scale the floor-plane translations (x, z):
+    ``"room"`` divides them by each room's own floor half-extent (the half width and depth of the floor's
+    bounding box), so that the walls of a rectangular room sit at +-1 whatever its size; ``"dataset"``
+    (ATISS / MiDiffusion, and every statistics file written before this field existed) scales them with
+    ``bounds_translations`` like the height. The height (y) always uses ``bounds_translations``.
     """
 
     room_type: str
@@ -35,6 +44,12 @@ class DatasetStats:
     count_furniture: dict[str, int] = field(default_factory=dict)
     object_count_histogram: list[int] = field(default_factory=list)
     class_presence: dict[str, float] = field(default_factory=dict)
+    translation_frame: str = "room"
+
+    def __post_init__(self):
+        if self.translation_frame not in TRANSLATION_FRAMES:
+            raise ValueError(f"translation_frame must be one of {', '.join(TRANSLATION_FRAMES)}; "
+                             f"got {self.translation_frame!r}")
 
     @property
     def spec(self):
@@ -107,6 +122,7 @@ class DatasetStats:
             "room_type": self.room_type,
             "object_count_histogram": self.object_count_histogram,
             "class_presence": self.class_presence,
+            "translation_frame": self.translation_frame,
         }
 
     @classmethod
@@ -127,6 +143,7 @@ class DatasetStats:
             count_furniture={k: int(v) for k, v in count.items()},
             object_count_histogram=[int(v) for v in data.get("object_count_histogram", [])],
             class_presence={k: float(v) for k, v in data.get("class_presence", {}).items()},
+            translation_frame=data.get("translation_frame", "dataset"),  # files from before the field
         )
 
     def save(self, path: str | Path) -> None:

@@ -3,6 +3,8 @@ checkpoints and the shipped bedroom prior."""
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import pytest
 import torch
 from torch import nn
@@ -10,7 +12,7 @@ from torch import nn
 from agents.denoiser import (DenoiserConfig, SceneDenoiser, ScenePrior, atomic_torch_save,
                              timestep_embedding)
 from iarcs_env import FloorPlan, get_room
-from iarcs_env.scene import SceneBatch
+from iarcs_env.scene import Layout, SceneBatch
 from iarcs_env.stats import DatasetStats
 
 from conftest import L_SHAPE
@@ -78,18 +80,20 @@ def test_global_floor_feature_is_a_set_function_without_point_tokens():
         assert torch.allclose(net(x, t, floor[:, torch.randperm(256)]), net(x, t, floor), atol=1e-5)
 
 
-@pytest.mark.parametrize("points, adaln, walls", [(0, False, False), (0, True, False), (8, False, False),
-                                                  (8, True, False), (8, False, True), (8, True, True),
-                                                  (300, True, True)])
-def test_floor_conditioning_options(points, adaln, walls):
+@pytest.mark.parametrize("points, adaln, walls, room", [(0, False, False, False), (0, True, False, True),
+                                                        (8, False, False, False), (8, True, False, True),
+                                                        (8, False, True, False), (8, False, True, True),
+                                                        (8, True, True, True), (300, True, True, True)])
+def test_floor_conditioning_options(points, adaln, walls, room):
     """Global tokens, per-point tokens, the floor in adaLN and the slots' wall features each work alone and
-    together; the context is [adaLN row] + tokens + [raw boundary points packed in rows of width d]."""
+    together; the context is [adaLN row] + tokens + [raw boundary points (+ the floor's half-extents in the
+    room frame) packed in rows of width d]."""
     cfg = DenoiserConfig.from_preset("tiny", floor_point_tokens=points, floor_adaln=adaln,
-                                     floor_slot_features=walls)
+                                     floor_slot_features=walls, room_frame=room)
     net = _randomised(SceneDenoiser(cfg, BEDROOM.feature_dim))
     floor = torch.randn(2, 256, 4)
     ctx = net.encode_floor(floor)
-    raw_rows = -(-4 * points // cfg.width) if walls else 0
+    raw_rows = -(-(4 * points + 2 * room) // cfg.width) if walls else 0
     assert ctx.shape == (2, int(adaln) + cfg.floor_tokens + points + raw_rows, cfg.width)
     x, t = torch.randn(2, 12, BEDROOM.feature_dim), torch.tensor([5, 50])
     with torch.no_grad():
@@ -117,6 +121,33 @@ def test_wall_features_measure_the_nearest_walls():
     assert torch.allclose(f, torch.tensor([-0.5, 0.0, -1.0, 0.0, 0.5, 0.0, -0.75, 0.0, -1.0, 0.75]), atol=1e-6)
     x[0, 0, 0] = 1.3  # outside: negative signed distance
     assert net.wall_features(x, points)[0, 0, 4] == pytest.approx(-0.3, abs=1e-6)
+    # room frame: the same square scaled to half-extents (0.5, 0.25) gives the same features, in room units,
+    # plus the half-extents; through forward's packed context, the extents come from the floor points
+    extents = torch.tensor([[0.5, 0.25]])
+    small = torch.cat([points[..., :2] * extents, points[..., 2:]], -1)
+    x[0, 0, 0] = 0.5
+    f_room = net.wall_features(x, small, extents)[0, 0]
+    assert torch.allclose(f_room, torch.cat([f, extents[0]]), atol=1e-6)
+    ctx = net.encode_floor(small)
+    assert torch.allclose(ctx[0, -2:].reshape(-1)[4 * 8:4 * 8 + 2], extents[0])  # after 8 packed points
+
+
+def test_room_frame_puts_walls_at_plus_minus_one():
+    """A 4 m x 3 m room: an object against the +x wall has feature x = 1 - half depth / 2 m in the room
+    frame, whatever the dataset bounds; decoding gives the metric position back."""
+    floor = FloorPlan.from_vertices([[0, 0], [4, 0], [4, 3], [0, 3]])
+    lay = Layout("bedroom", floor, ["double_bed"], [[3.0, 0.5, 1.5]], [[1.0, 0.5, 0.9]], [-1.5707963])
+    batch = SceneBatch.from_layouts([lay])
+    room, dataset = _stats(), replace(_stats(), translation_frame="dataset")
+    x = batch.encode(room)
+    assert x[0, 0, 0].item() == pytest.approx(0.5) and x[0, 0, 2].item() == pytest.approx(0.0)
+    assert x[0, 0, 0].item() != pytest.approx(batch.encode(dataset)[0, 0, 0].item())
+    back = SceneBatch.decode(x, room, batch.floors)
+    assert torch.allclose(back.translations, batch.translations, atol=1e-5)
+    with pytest.raises(ValueError, match="half-extents"):
+        SceneBatch(batch.spec, batch.labels, batch.translations, batch.half_sizes, batch.yaws, []).encode(room)
+    with pytest.raises(ValueError, match="translation_frame"):
+        ScenePrior(SceneDenoiser(DenoiserConfig.tiny(), BEDROOM.feature_dim), dataset)
 
 
 def test_floor_shape_reaches_every_layer_through_adaln():
@@ -248,10 +279,11 @@ def test_load_rejects_other_files_clearly(tmp_path):
 def test_checkpoints_without_the_floor_options_load_as_the_original_design(tmp_path):
     torch.manual_seed(0)
     prior = ScenePrior.create("bedroom", _stats(), "tiny", floor_point_tokens=0, floor_adaln=False,
-                              floor_slot_features=False)
+                              floor_slot_features=False, room_frame=False)
     state = prior.state()
-    for key in ("floor_point_tokens", "floor_adaln", "floor_slot_features"):  # written before these existed
+    for key in ("floor_point_tokens", "floor_adaln", "floor_slot_features", "room_frame"):  # written before these
         del state["denoiser_config"][key]
+    del state["stats"]["translation_frame"]
     atomic_torch_save(state, tmp_path / "old.pt")
     loaded = ScenePrior.load(tmp_path / "old.pt")
     assert loaded.denoiser.config == prior.denoiser.config
@@ -293,3 +325,4 @@ def test_environment_default_stats_are_the_shipped_priors(room):
     assert stats.bounds_translations == pytest.approx(prior.stats.bounds_translations)
     assert stats.bounds_sizes == pytest.approx(prior.stats.bounds_sizes)
     assert stats.class_presence == pytest.approx(prior.stats.class_presence)
+    assert stats.translation_frame == prior.stats.translation_frame
