@@ -306,6 +306,7 @@ def train(cfg: PretrainConfig, layouts: Sequence[Layout] | None = None, max_step
     # model, EMA, optimizer, randomness
     torch.manual_seed(cfg.seed)
     net = SceneDenoiser(cfg.denoiser_config(), spec.feature_dim)
+    net.set_metric_scale(stats)
     weights = None  # validation losses stay the plain loss, comparable across recipes
     if cfg.translation_weight != 1.0:
         weights = torch.ones(spec.feature_dim)

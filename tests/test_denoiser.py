@@ -127,7 +127,14 @@ def test_wall_features_measure_the_nearest_walls():
     small = torch.cat([points[..., :2] * extents, points[..., 2:]], -1)
     x[0, 0, 0] = 0.5
     f_room = net.wall_features(x, small, extents)[0, 0]
-    assert torch.allclose(f_room, torch.cat([f, extents[0]]), atol=1e-6)
+    assert torch.allclose(f_room[:12], torch.cat([f, extents[0]]), atol=1e-6)
+    # footprint-to-wall gaps (features taken as metres until set_metric_scale): the centre (0.25, 0.0625) m is
+    # 0.25 m from the x wall and 0.1875 m from the z wall; an unrotated box of half size (0.1, 0.05) reaches
+    # 0.1 and 0.05 of that; rotated by 90 degrees its axes swap
+    x[0, 0, 3], x[0, 0, 5], x[0, 0, 6] = 0.1, 0.05, 1.0  # half size x, z; cos(yaw)
+    assert torch.allclose(net.wall_features(x, small, extents)[0, 0, 12:], torch.tensor([0.15, 0.1375]))
+    x[0, 0, 6], x[0, 0, 7] = 0.0, 1.0
+    assert torch.allclose(net.wall_features(x, small, extents)[0, 0, 12:], torch.tensor([0.2, 0.0875]))
     ctx = net.encode_floor(small)
     assert torch.allclose(ctx[0, -2:].reshape(-1)[4 * 8:4 * 8 + 2], extents[0])  # after 8 packed points
 
@@ -148,6 +155,20 @@ def test_room_frame_puts_walls_at_plus_minus_one():
         SceneBatch(batch.spec, batch.labels, batch.translations, batch.half_sizes, batch.yaws, []).encode(room)
     with pytest.raises(ValueError, match="translation_frame"):
         ScenePrior(SceneDenoiser(DenoiserConfig.tiny(), BEDROOM.feature_dim), dataset)
+
+
+def test_footprint_gap_through_the_feature_pipeline():
+    """A bed whose foot end (half depth 0.9 m, turned to face -x) stops 2 cm short of the +x wall: the
+    prior's wall features, computed from the encoded scene and floor condition, give a 0.02 m gap."""
+    floor = FloorPlan.from_vertices([[0, 0], [4, 0], [4, 3], [0, 3]])
+    lay = Layout("bedroom", floor, ["double_bed"], [[3.08, 0.5, 1.5]], [[1.0, 0.5, 0.9]], [-1.5707963])
+    batch = SceneBatch.from_layouts([lay])
+    prior = ScenePrior.create("bedroom", _stats(), "tiny")
+    assert prior.denoiser.metric_bounds.tolist() == pytest.approx([-3.0, -3.0, 3.0, 3.0, 0.05, 0.05, 1.5, 1.5])
+    x, f = batch.encode(prior.stats), prior.floor_condition(batch.floors).cpu()
+    gaps = prior.denoiser.wall_features(x, f, f[..., :2].abs().amax(1))[0, 0, 12:]
+    assert gaps[0].item() == pytest.approx(0.02, abs=1e-3)
+    assert gaps[1].item() == pytest.approx(1.5 - 1.0, abs=1e-3)  # the z wall: 1.5 m away, half width 1.0 m
 
 
 def test_floor_shape_reaches_every_layer_through_adaln():
