@@ -62,7 +62,7 @@ from torch import nn
 
 from iarcs_env.floorplan import FloorPlan
 from iarcs_env.rooms import RoomSpec, get_room
-from iarcs_env.scene import SceneBatch, floor_features
+from iarcs_env.scene import MIN_FREE_RANGE, SceneBatch, floor_features, footprint_reach
 from iarcs_env.schedule import NoiseSchedule, ScheduleConfig, guided_model_fn
 from iarcs_env.stats import DatasetStats
 
@@ -276,7 +276,8 @@ class SceneDenoiser(nn.Module):
             self.floor_adaln = nn.Linear(g, d)
         if config.floor_slot_features:
             self.wall_embed = nn.Sequential(nn.Linear(self.num_wall_features, d), nn.GELU(), nn.Linear(d, d))
-        if config.room_frame:  # translation x, z bounds (lo x, lo z, hi x, hi z), then the same of the sizes
+        if config.room_frame:
+            # translation (lo x, lo z, hi x, hi z), then the same of the half sizes
             self.register_buffer("metric_bounds", torch.tensor([-1.0, -1.0, 1.0, 1.0] * 2), persistent=False)
         self.blocks = nn.ModuleList(DenoiserBlock(config) for _ in range(config.num_layers))
         self.final_norm = nn.LayerNorm(d, elementwise_affine=False, eps=1e-6)
@@ -332,12 +333,16 @@ class SceneDenoiser(nn.Module):
         """(B, N, num_wall_features): each slot's (x, z) relative to the nearest boundary point q1 (offset,
         q1's inward normal, signed distance along it) and to the nearest point q2 whose normal differs from
         q1's by more than 60 degrees (another wall; q1 again when there is none). With ``extents`` (B, 2),
-        the scaled floor's half-extents, the points are taken into the room frame of the slots, and the
-        extents and, for q1 and q2, the gap in metres between the slot's oriented footprint and the wall
-        (signed distance of the centre minus the footprint's half-extent along the normal) are appended."""
-        p = x[..., [0, 2]]  # scaled translation x, z
+        the scaled floor's half-extents, slots and points are measured in the floor's bounding-box frame
+        (its walls at +-1), and the extents and, for q1 and q2, the gap in metres between the slot's
+        oriented footprint and the wall (signed distance of the centre minus the footprint's half-extent
+        along the normal) are appended."""
         q, n = points[..., :2], points[..., 2:]
-        if extents is not None:  # slots in the room frame: the floor points too
+        if extents is None:
+            p = x[..., [0, 2]]  # scaled translation x, z: the scaling of the floor points
+        else:
+            centre, ext, u_x, u_z, half = self._slot_geometry(x, extents)
+            p = centre / ext.clamp_min(1e-2)  # (an all-zero, unconditional floor has no extent)
             q = q / extents.clamp_min(1e-2)[:, None]
         d2 = (p[:, :, None] - q[:, None]).pow(2).sum(-1)  # (B, N, K)
         j1 = d2.argmin(-1)
@@ -350,33 +355,34 @@ class SceneDenoiser(nn.Module):
             nj = torch.gather(n, 1, j[..., None].expand(-1, -1, 2))
             off = p - qj
             feats += [off, nj, (off * nj).sum(-1, keepdim=True)]
-        if extents is not None:
+        if extents is not None:  # footprint-to-wall gaps in metres, for the same two walls
             feats.append(extents[:, None].expand(-1, p.shape[1], -1))
-            feats.append(self._footprint_gaps(x, points, extents, (j1, j2)))
+            q_m = self._metres(points[..., :2], 0)
+            gaps = []
+            for j in (j1, j2):
+                qj = torch.gather(q_m, 1, j[..., None].expand(-1, -1, 2))
+                nj = torch.gather(n, 1, j[..., None].expand(-1, -1, 2))
+                reach = half[..., 0] * (nj * u_x).sum(-1).abs() + half[..., 1] * (nj * u_z).sum(-1).abs()
+                gaps.append(((centre - qj) * nj).sum(-1) - reach)
+            feats.append(torch.stack(gaps, -1).clamp(-2, 2))
         return torch.cat(feats, -1)
 
-    def _footprint_gaps(self, x: torch.Tensor, points: torch.Tensor, extents: torch.Tensor, walls) -> torch.Tensor:
-        """(B, N, len(walls)) gaps in metres (clamped to +-2) between each slot's footprint and the wall of
-        boundary point ``walls[i]`` (B, N): the centre's signed distance along the inward normal minus the
-        footprint's half-extent along it, ``hx |n . u_x| + hz |n . u_z|`` with the object's axes u."""
-        t_lo, t_hi, s_lo, s_hi = self.metric_bounds.view(4, 2)  # each (x, z)
+    def _metres(self, v: torch.Tensor, which: int) -> torch.Tensor:
+        """Scaled (x, z) features -> metres: ``which`` 0 for translations, 1 for half sizes."""
+        lo, hi = self.metric_bounds.view(2, 2, 2)[which]
+        return (v.clamp(-1, 1) + 1) / 2 * (hi - lo) + lo
 
-        def metres(v, lo, hi):
-            return (v.clamp(-1, 1) + 1) / 2 * (hi - lo) + lo
-
-        centre = x[..., [0, 2]].clamp(-1, 1) * metres(extents, t_lo, t_hi)[:, None]  # room frame -> metres
-        q = metres(points[..., :2], t_lo, t_hi)
-        half = metres(x[..., [3, 5]], s_lo, s_hi)
+    def _slot_geometry(self, x: torch.Tensor, extents: torch.Tensor):
+        """Metric geometry of noisy room-frame slots (see :func:`iarcs_env.scene.translation_scale`): centre
+        (B, N, 2), the floor's half-extents (B, 1, 2), the object's local x and z axes in (x, z), half size."""
+        ext = self._metres(extents, 0)[:, None]
+        half = self._metres(x[..., [3, 5]], 1).clamp_min(0)
         yaw = F.normalize(x[..., 6:8], dim=-1, eps=1e-3)  # (cos, sin)
-        u_x = torch.stack([yaw[..., 0], -yaw[..., 1]], -1)  # the object's local x and z axes in (x, z)
+        free = (ext - footprint_reach(half, yaw[..., 0], yaw[..., 1])).clamp_min(MIN_FREE_RANGE)
+        centre = x[..., [0, 2]].clamp(-1, 1) * free
+        u_x = torch.stack([yaw[..., 0], -yaw[..., 1]], -1)
         u_z = torch.stack([yaw[..., 1], yaw[..., 0]], -1)
-        gaps = []
-        for j in walls:
-            qj = torch.gather(q, 1, j[..., None].expand(-1, -1, 2))
-            nj = torch.gather(points[..., 2:], 1, j[..., None].expand(-1, -1, 2))
-            reach = half[..., 0] * (nj * u_x).sum(-1).abs() + half[..., 1] * (nj * u_z).sum(-1).abs()
-            gaps.append(((centre - qj) * nj).sum(-1) - reach)
-        return torch.stack(gaps, -1).clamp(-2, 2)
+        return centre, ext, u_x, u_z, half
 
     def forward(self, x: torch.Tensor, t: torch.Tensor, floor: torch.Tensor | None = None,
                 floor_context: torch.Tensor | None = None) -> torch.Tensor:

@@ -200,7 +200,7 @@ class SceneBatch:
         are the floors' half-extents (default: from ``floors``; see :func:`floor_half_extents`)."""
         if extents is None and stats.translation_frame == "room" and len(self.floors) == self.batch_size:
             extents = floor_half_extents(self.floors)
-        t_lo, t_hi = translation_scale(stats, self.translations, extents)
+        t_lo, t_hi = translation_scale(stats, self.translations, extents, self.half_sizes, self.yaws)
         s_lo, s_hi = stats.size_bounds(self.half_sizes)
         t = (2 * (self.translations - t_lo) / (t_hi - t_lo) - 1).clamp(-1, 1)
         s = (2 * (self.half_sizes - s_lo) / (s_hi - s_lo) - 1).clamp(-1, 1)
@@ -220,12 +220,12 @@ class SceneBatch:
             raise ValueError(f"decoding {x.shape[0]} scenes needs as many floor plans; got {len(floors)}")
         x = x.detach().float()
         extents = floor_half_extents(floors) if stats.translation_frame == "room" else None
-        t_lo, t_hi = translation_scale(stats, x, extents)
         s_lo, s_hi = stats.size_bounds(x)
         g = x[..., :6].clamp(-1, 1)
-        trans = (g[..., 0:3] + 1) / 2 * (t_hi - t_lo) + t_lo
         half = ((g[..., 3:6] + 1) / 2 * (s_hi - s_lo) + s_lo).clamp_min(1e-3)
         yaws = torch.atan2(x[..., 7], x[..., 6])
+        t_lo, t_hi = translation_scale(stats, x, extents, half, yaws)  # room frame: needs the footprint
+        trans = (g[..., 0:3] + 1) / 2 * (t_hi - t_lo) + t_lo
         labels = x[..., 8:].argmax(-1)
         empty = labels == spec.empty_index
         trans, half, yaws = trans.masked_fill(empty[..., None], 0), half.masked_fill(empty[..., None], 0), yaws.masked_fill(empty, 0)
@@ -239,20 +239,36 @@ def floor_half_extents(floors: Sequence[FloorPlan]) -> torch.Tensor:
     return torch.tensor(np.maximum((b[:, 2:] - b[:, :2]) / 2, 1e-3), dtype=torch.float32)
 
 
-def translation_scale(stats: "DatasetStats", like: torch.Tensor,
-                      extents: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+#: The smallest free half-range (metres) of the room frame, for objects as wide as the room or wider.
+MIN_FREE_RANGE = 0.05
+
+
+def footprint_reach(half_xz: torch.Tensor, cos: torch.Tensor, sin: torch.Tensor) -> torch.Tensor:
+    """(..., 2) half-extents along x and z of footprints with half sizes ``half_xz`` (..., 2) turned by the
+    yaw of (cos, sin): ``|c| hx + |s| hz`` and ``|s| hx + |c| hz`` (the axis-aligned box of the footprint)."""
+    c, s = cos.abs(), sin.abs()
+    return torch.stack([c * half_xz[..., 0] + s * half_xz[..., 1], s * half_xz[..., 0] + c * half_xz[..., 1]], -1)
+
+
+def translation_scale(stats: "DatasetStats", like: torch.Tensor, extents: torch.Tensor | None = None,
+                      half_sizes: torch.Tensor | None = None, yaws: torch.Tensor | None = None
+                      ) -> tuple[torch.Tensor, torch.Tensor]:
     """(lo, hi) that map translations linearly onto [-1, 1]: the dataset bounds (3,), or in the ``"room"``
-    frame per-scene bounds (B, 1, 3) whose x and z are -+ the floor half-extents ``extents`` (B, 2)."""
+    frame per-object bounds (B, N, 3) whose x and z are -+ the free half-range ``e - r`` of the object's
+    centre in its floor's bounding box: ``e`` the floor's half-extent (``extents`` (B, 2)), ``r`` the
+    footprint's half-extent along that axis (:func:`footprint_reach` of ``half_sizes`` and ``yaws``), at
+    least :data:`MIN_FREE_RANGE`. So +-1 is an object touching a wall of the bounding box."""
     lo, hi = stats.translation_bounds(like)
     if stats.translation_frame == "dataset":
         return lo, hi
     if extents is None:
         raise ValueError("room-frame features need the floors' half-extents: build the SceneBatch with its "
                          "floor plans, or pass extents=floor_half_extents(floors)")
-    e = extents.to(device=like.device, dtype=like.dtype)
-    lo = torch.stack([-e[:, 0], lo[1].expand(len(e)), -e[:, 1]], -1)
-    hi = torch.stack([e[:, 0], hi[1].expand(len(e)), e[:, 1]], -1)
-    return lo[:, None], hi[:, None]
+    e = extents.to(device=like.device, dtype=like.dtype)[:, None]  # (B, 1, 2)
+    free = (e - footprint_reach(half_sizes[..., [0, 2]], torch.cos(yaws), torch.sin(yaws))).clamp_min(MIN_FREE_RANGE)
+    lo = torch.stack([-free[..., 0], lo[1].expand(free.shape[:-1]), -free[..., 1]], -1)
+    hi = torch.stack([free[..., 0], hi[1].expand(free.shape[:-1]), free[..., 1]], -1)
+    return lo, hi
 
 
 def floor_features(floors: Sequence[FloorPlan], stats: "DatasetStats", n_points: int = 256) -> torch.Tensor:

@@ -30,8 +30,9 @@ class DatasetStats:
     ``class_presence[c]`` is the fraction of rooms with at least one object of class c.
 
     ``translation_frame`` says how the model features scale the floor-plane translations (x, z):
-    ``"room"`` divides them by each room's own floor half-extent (the half width and depth of the floor's
-    bounding box), so that the walls of a rectangular room sit at +-1 whatever its size; ``"dataset"``
+    ``"room"`` divides each object's centre by its free half-range in its room, the floor's bounding-box
+    half-extent minus the footprint's own half-extent along that axis, so that +-1 is an object touching
+    a wall of a rectangular room whatever the sizes of room and object (:func:`iarcs_env.scene.translation_scale`); ``"dataset"``
     (ATISS / MiDiffusion, and every statistics file written before this field existed) scales them with
     ``bounds_translations`` like the height. The height (y) always uses ``bounds_translations``.
     """

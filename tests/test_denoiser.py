@@ -128,26 +128,27 @@ def test_wall_features_measure_the_nearest_walls():
     x[0, 0, 0] = 0.5
     f_room = net.wall_features(x, small, extents)[0, 0]
     assert torch.allclose(f_room[:12], torch.cat([f, extents[0]]), atol=1e-6)
-    # footprint-to-wall gaps (features taken as metres until set_metric_scale): the centre (0.25, 0.0625) m is
-    # 0.25 m from the x wall and 0.1875 m from the z wall; an unrotated box of half size (0.1, 0.05) reaches
-    # 0.1 and 0.05 of that; rotated by 90 degrees its axes swap
+    # footprint-to-wall gaps (features taken as metres until set_metric_scale): a box of half size (0.1, 0.05)
+    # at room-frame (0.5, 0.25) has free half-ranges (0.4, 0.2), so its centre is at (0.2, 0.05) m, 0.3 m from
+    # the x wall and 0.2 m from the z wall, which its footprint reaches 0.1 and 0.05 m closer; turned by 90
+    # degrees its axes swap: free ranges (0.45, 0.15), centre (0.225, 0.0375)
     x[0, 0, 3], x[0, 0, 5], x[0, 0, 6] = 0.1, 0.05, 1.0  # half size x, z; cos(yaw)
-    assert torch.allclose(net.wall_features(x, small, extents)[0, 0, 12:], torch.tensor([0.15, 0.1375]))
+    assert torch.allclose(net.wall_features(x, small, extents)[0, 0, 12:], torch.tensor([0.2, 0.15]))
     x[0, 0, 6], x[0, 0, 7] = 0.0, 1.0
-    assert torch.allclose(net.wall_features(x, small, extents)[0, 0, 12:], torch.tensor([0.2, 0.0875]))
-    ctx = net.encode_floor(small)
-    assert torch.allclose(ctx[0, -2:].reshape(-1)[4 * 8:4 * 8 + 2], extents[0])  # after 8 packed points
+    assert torch.allclose(net.wall_features(x, small, extents)[0, 0, 12:], torch.tensor([0.225, 0.1125]))
 
 
 def test_room_frame_puts_walls_at_plus_minus_one():
-    """A 4 m x 3 m room: an object against the +x wall has feature x = 1 - half depth / 2 m in the room
-    frame, whatever the dataset bounds; decoding gives the metric position back."""
+    """A 4 m x 3 m room: a bed (half depth 0.9 m, turned to face -x) touching the +x wall has feature x = 1 in
+    the room frame, whatever the sizes of room and bed, and 0.5 when its centre is halfway from the room's
+    centre line to that position; decoding gives the metric positions back."""
     floor = FloorPlan.from_vertices([[0, 0], [4, 0], [4, 3], [0, 3]])
-    lay = Layout("bedroom", floor, ["double_bed"], [[3.0, 0.5, 1.5]], [[1.0, 0.5, 0.9]], [-1.5707963])
+    lay = Layout("bedroom", floor, ["double_bed", "double_bed"], [[3.1, 0.5, 1.5], [2.55, 0.5, 1.5]],
+                 [[1.0, 0.5, 0.9], [1.0, 0.5, 0.9]], [-1.5707963, -1.5707963])
     batch = SceneBatch.from_layouts([lay])
     room, dataset = _stats(), replace(_stats(), translation_frame="dataset")
     x = batch.encode(room)
-    assert x[0, 0, 0].item() == pytest.approx(0.5) and x[0, 0, 2].item() == pytest.approx(0.0)
+    assert x[0, :2, 0].tolist() == pytest.approx([1.0, 0.5]) and x[0, 0, 2].item() == pytest.approx(0.0, abs=1e-6)
     assert x[0, 0, 0].item() != pytest.approx(batch.encode(dataset)[0, 0, 0].item())
     back = SceneBatch.decode(x, room, batch.floors)
     assert torch.allclose(back.translations, batch.translations, atol=1e-5)
