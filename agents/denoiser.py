@@ -21,11 +21,11 @@ Network, for x_t of shape (B, N, 8 + K) (N object slots; geometry 8 = translatio
   added to the slot embedding. Without them the network had to infer wall distances from dot-product
   attention, and trained priors ignored the floor entirely (the same loss with shuffled floors). With
   ``room_frame`` (slot translations in the room frame of :class:`iarcs_env.stats.DatasetStats`) they are
-  measured in that frame, plus the floor's half-extents and, for both walls, the gap in metres between the
-  slot's (noisy) oriented footprint and the wall (4 more numbers). Objects stand 1-3 cm from the walls in
-  the data while the out-of-bound test tolerates 5 cm: without the gap the network must compose position,
-  size and yaw itself to reach that precision, and 2,000 CPU steps did not teach it (R_out 0.36 vs 0.07);
-  the gap needs the metric scale of the features (:meth:`SceneDenoiser.set_metric_scale`);
+  measured in the floor's bounding-box frame (its walls at +-1), plus the floor's half-extents and, for
+  both walls, the gap in metres between the slot's (noisy) oriented footprint and the wall (4 more
+  numbers; they need the metric scale of the features, :meth:`SceneDenoiser.set_metric_scale`). The room
+  frame itself is what made placement against walls precise (objects stand 1-3 cm from them in the data,
+  the out-of-bound test tolerates 5 cm): docs/results/prior_bedroom_small.md;
 * timestep: sinusoidal embedding -> MLP; plus, with ``floor_adaln``, a linear map of the global floor
   feature, so the adaptive layer norm of every sub-layer is modulated by the room shape; it drives
   shift / scale / gate per sub-layer (zero-initialised as in DiT's adaLN-Zero);
@@ -104,9 +104,10 @@ class DenoiserConfig:
     and the same for the nearest point of another wall (normals more than 60 degrees apart), through an
     MLP added to the slot embedding (needs ``floor_point_tokens`` > 0; False: the original design)."""
     room_frame: bool = False
-    """The slot translations (x, z) are in the ``"room"`` frame (divided by the floor's half-extents, walls
-    of a rectangular room at +-1), the ``translation_frame`` of the prior's DatasetStats; the wall
-    features are then measured in that frame too. False: the ``"dataset"`` frame (the original design)."""
+    """The slot translations (x, z) are in the ``"room"`` frame (each centre over its free half-range in
+    the floor's bounding box, +-1 = touching a wall; :func:`iarcs_env.scene.translation_scale`), the
+    ``translation_frame`` of the prior's DatasetStats; the wall features then add the footprint-to-wall
+    gaps. False: the ``"dataset"`` frame (the original design)."""
 
     def __post_init__(self):
         self.pointnet = tuple(int(v) for v in self.pointnet)

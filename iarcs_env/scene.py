@@ -8,9 +8,9 @@ axes, and in a :class:`SceneBatch` translations are relative to the floor plan's
 Model features per slot (8 + K numbers): translation (3) and half size (3) scaled to [-1, 1],
 ``[cos(yaw), sin(yaw)]``, and the class one-hot over ``classes + [empty]`` mapped to {-1, +1}. Unused
 slots are class ``empty`` with geometry 0 in scaled space. Sizes and the height use the dataset bounds;
-the floor-plane translations (x, z) use, in the default ``"room"`` frame of :class:`DatasetStats`, the
-room's own floor half-extent (walls of a rectangular room at +-1), or the dataset bounds in the
-``"dataset"`` frame of ATISS / MiDiffusion.
+the floor-plane translations (x, z) use, in the default ``"room"`` frame of :class:`DatasetStats`, each
+object's free half-range in its floor's bounding box (+-1 = the footprint touches a wall; see
+:func:`translation_scale`), or the dataset bounds in the ``"dataset"`` frame of ATISS / MiDiffusion.
 """
 
 from __future__ import annotations
