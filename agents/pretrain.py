@@ -295,6 +295,11 @@ def train(cfg: PretrainConfig, layouts: Sequence[Layout] | None = None, max_step
     train_layouts = [layouts[i] for i in order[n_val:]]
     if saved is not None:
         stats = DatasetStats.from_json(saved["stats"], spec.name)
+        if (stats.translation_frame == "room") != cfg.denoiser_config().room_frame:
+            raise ValueError(
+                f"{state_path} was trained with translations in the {stats.translation_frame!r} frame, but the "
+                f"{cfg.preset!r} preset of this iARCS uses the other one; use another output folder (--out) to "
+                "start a new run, or resume with the iARCS version that wrote it")
     else:
         stats = stats_for_training(train_layouts, spec.name, cfg.rotation_augment)
         stats.translation_frame = "room" if cfg.denoiser_config().room_frame else "dataset"

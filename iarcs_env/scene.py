@@ -233,8 +233,8 @@ class SceneBatch:
 
 
 def floor_half_extents(floors: Sequence[FloorPlan]) -> torch.Tensor:
-    """(B, 2) half width (x) and half depth (z) of each floor's bounding box, in metres: the scale of the
-    ``"room"`` translation frame (a floor centred on its bounding box spans [-e, e] on each axis)."""
+    """(B, 2) half width (x) and half depth (z) of each floor's bounding box, in metres (a floor centred on
+    its bounding box spans [-e, e] on each axis): the ``extents`` of :func:`translation_scale`."""
     b = np.array([f.bounds for f in floors], dtype=np.float64).reshape(-1, 4)
     return torch.tensor(np.maximum((b[:, 2:] - b[:, :2]) / 2, 1e-3), dtype=torch.float32)
 

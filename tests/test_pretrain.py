@@ -170,6 +170,11 @@ def test_interrupted_run_resumes_where_it_stopped(tmp_path):
     # resuming with another model is refused with a hint
     with pytest.raises(ValueError, match="another output folder"):
         train(replace(cfg, model={"width": 64}), rooms, **quiet)
+    # a run written in the dataset frame (before the room frame existed) is refused clearly, not half-loaded
+    state["stats"]["translation_frame"] = "dataset"
+    torch.save(state, tmp_path / "b" / "run" / STATE_FILE)
+    with pytest.raises(ValueError, match="'dataset' frame"):
+        train(cfg, rooms, **quiet)
 
 
 def test_cli_pretrain_and_sample(tmp_path, capsys):
