@@ -29,6 +29,10 @@ Network, for x_t of shape (B, N, 8 + K) (N object slots; geometry 8 = translatio
 * timestep: sinusoidal embedding -> MLP; plus, with ``floor_adaln``, a linear map of the global floor
   feature, so the adaptive layer norm of every sub-layer is modulated by the room shape; it drives
   shift / scale / gate per sub-layer (zero-initialised as in DiT's adaLN-Zero);
+* pair bias (``pair_bias``): for every pair of slots, the other slot's noisy centre in this slot's frame,
+  the gaps between their footprints and their relative yaw, in metres, through an MLP to one additive
+  bias per layer and head on the self-attention logits (a relative-geometry bias, as a nightstand's place
+  is set by its bed's);
 * ``num_layers`` blocks of self-attention over the slots, cross-attention to the floor tokens and a GELU
   feed-forward; attention uses explicit ``q_proj``, ``k_proj``, ``v_proj``, ``out_proj`` ``nn.Linear``
   layers (LoRA targets exactly these; ``nn.MultiheadAttention`` would bypass LoRA on its fast path);
@@ -43,8 +47,9 @@ Unconditional predictions (classifier-free guidance, condition dropout in traini
 input, which no real floor produces (its normals are unit vectors).
 
 The dataclass defaults of the floor options (``floor_point_tokens=0``, ``floor_adaln=False``,
-``floor_slot_features=False``, ``room_frame=False``) are the original design, so checkpoints written before
-these fields existed load unchanged; the ``paper`` and ``small`` presets switch all four on.
+``floor_slot_features=False``, ``room_frame=False``, ``pair_bias=False``) are the original design, so
+checkpoints written before these fields existed load unchanged; the ``paper`` and ``small`` presets switch
+all five on.
 """
 
 from __future__ import annotations
@@ -108,6 +113,11 @@ class DenoiserConfig:
     the floor's bounding box, +-1 = touching a wall; :func:`iarcs_env.scene.translation_scale`), the
     ``translation_frame`` of the prior's DatasetStats; the wall features then add the footprint-to-wall
     gaps. False: the ``"dataset"`` frame (the original design)."""
+    pair_bias: bool = False
+    """Bias every self-attention layer's logits by the metric geometry of each pair of slots (the other
+    slot's offset in this slot's frame, the gaps between their footprints, their relative yaw) through an
+    MLP (:meth:`SceneDenoiser.pair_features`): object-to-object placement (a nightstand beside a bed) needs
+    the precision the room frame gave against walls. Needs ``room_frame`` (False: the original design)."""
 
     def __post_init__(self):
         self.pointnet = tuple(int(v) for v in self.pointnet)
@@ -118,6 +128,8 @@ class DenoiserConfig:
                              f"floor_point_tokens={self.floor_point_tokens}")
         if self.floor_slot_features and not self.floor_point_tokens:
             raise ValueError("floor_slot_features needs floor_point_tokens > 0 (the boundary points it measures)")
+        if self.pair_bias and not (self.room_frame and self.floor_slot_features):
+            raise ValueError("pair_bias needs room_frame and floor_slot_features (it measures slots in metres)")
         if len(self.pointnet) < 3 or self.pointnet[0] != 4:
             raise ValueError(f"pointnet widths must start with 4 (x, z, nx, nz) and have >= 3 entries; "
                              f"got {list(self.pointnet)}")
@@ -126,19 +138,21 @@ class DenoiserConfig:
     def paper(cls) -> "DenoiserConfig":
         """iARCS / MiDiffusion size: 8 layers, width 512, 4 heads, feed-forward 2048, dropout 0.1, PointNet
         [4, 64, 64, 512, 64]; floor conditioning through adaLN and 64 per-point tokens as in ``small``."""
-        return cls(floor_point_tokens=64, floor_adaln=True, floor_slot_features=True, room_frame=True)
+        return cls(floor_point_tokens=64, floor_adaln=True, floor_slot_features=True, room_frame=True,
+                   pair_bias=True)
 
     @classmethod
     def small(cls) -> "DenoiserConfig":
         """CPU default: a 20-step DDIM rollout of 32 bedrooms in about a second on 2 cores."""
         return cls(num_layers=6, width=128, num_heads=4, ff_dim=512, dropout=0.0, floor_point_tokens=64,
-                   floor_adaln=True, floor_slot_features=True, room_frame=True)
+                   floor_adaln=True, floor_slot_features=True, room_frame=True, pair_bias=True)
 
     @classmethod
     def tiny(cls) -> "DenoiserConfig":
         """For tests only."""
         return cls(num_layers=1, width=32, num_heads=2, ff_dim=64, dropout=0.0, pointnet=(4, 16, 32, 16),
-                   floor_tokens=2, floor_point_tokens=8, floor_adaln=True, floor_slot_features=True, room_frame=True)
+                   floor_tokens=2, floor_point_tokens=8, floor_adaln=True, floor_slot_features=True, room_frame=True,
+                   pair_bias=True)
 
     @classmethod
     def from_preset(cls, name: str, **overrides) -> "DenoiserConfig":
@@ -169,14 +183,16 @@ class Attention(nn.Module):
         self.v_proj = nn.Linear(kv, dim)
         self.out_proj = nn.Linear(dim, dim)
 
-    def forward(self, x: torch.Tensor, context: torch.Tensor | None = None) -> torch.Tensor:
+    def forward(self, x: torch.Tensor, context: torch.Tensor | None = None, bias: torch.Tensor | None = None
+                ) -> torch.Tensor:
+        """``bias`` (B, heads, N, M): added to the attention logits."""
         ctx = x if context is None else context
         b, n, d = x.shape
         m = ctx.shape[1]
         q = self.q_proj(x).view(b, n, self.num_heads, self.head_dim).transpose(1, 2)
         k = self.k_proj(ctx).view(b, m, self.num_heads, self.head_dim).transpose(1, 2)
         v = self.v_proj(ctx).view(b, m, self.num_heads, self.head_dim).transpose(1, 2)
-        o = F.scaled_dot_product_attention(q, k, v, dropout_p=self.dropout if self.training else 0.0)
+        o = F.scaled_dot_product_attention(q, k, v, attn_mask=bias, dropout_p=self.dropout if self.training else 0.0)
         return self.out_proj(o.transpose(1, 2).reshape(b, n, d))
 
 
@@ -201,9 +217,10 @@ class DenoiserBlock(nn.Module):
         nn.init.zeros_(self.ada[1].weight)
         nn.init.zeros_(self.ada[1].bias)
 
-    def forward(self, x: torch.Tensor, temb: torch.Tensor, context: torch.Tensor) -> torch.Tensor:
+    def forward(self, x: torch.Tensor, temb: torch.Tensor, context: torch.Tensor,
+                pair_bias: torch.Tensor | None = None) -> torch.Tensor:
         s1, c1, g1, s2, c2, g2, s3, c3, g3 = self.ada(temb).chunk(9, dim=-1)
-        x = x + g1[:, None] * self.self_attn(modulate(self.norm1(x), s1, c1))
+        x = x + g1[:, None] * self.self_attn(modulate(self.norm1(x), s1, c1), bias=pair_bias)
         x = x + g2[:, None] * self.cross_attn(modulate(self.norm2(x), s2, c2), context)
         x = x + g3[:, None] * self.ff(modulate(self.norm3(x), s3, c3))
         return x
@@ -231,6 +248,7 @@ class PointNetEncoder(nn.Module):
 
 
 WALL_FEATURES = 10  # SceneDenoiser.wall_features: (offset 2, normal 2, signed distance 1) x 2 walls
+PAIR_FEATURES = 6  # per pair of slots: offset in the first's frame (2), footprint gaps (2), relative yaw (2)
 ROOM_FRAME_FEATURES = 4  # ... plus the floor's half-extents (x, z) and the footprint-to-wall gaps of both walls
 PACKED_EXTENTS = 2  # the floor's half-extents, packed after the raw boundary points in the room frame
 
@@ -280,6 +298,11 @@ class SceneDenoiser(nn.Module):
         if config.room_frame:
             # translation (lo x, lo z, hi x, hi z), then the same of the half sizes
             self.register_buffer("metric_bounds", torch.tensor([-1.0, -1.0, 1.0, 1.0] * 2), persistent=False)
+        if config.pair_bias:  # one bias per layer and head; zero-initialised: training starts without it
+            self.pair_embed = nn.Sequential(nn.Linear(PAIR_FEATURES, 64), nn.GELU(),
+                                            nn.Linear(64, config.num_layers * config.num_heads))
+            nn.init.zeros_(self.pair_embed[2].weight)
+            nn.init.zeros_(self.pair_embed[2].bias)
         self.blocks = nn.ModuleList(DenoiserBlock(config) for _ in range(config.num_layers))
         self.final_norm = nn.LayerNorm(d, elementwise_affine=False, eps=1e-6)
         self.final_ada = nn.Sequential(nn.SiLU(), nn.Linear(d, 2 * d))
@@ -368,6 +391,20 @@ class SceneDenoiser(nn.Module):
             feats.append(torch.stack(gaps, -1).clamp(-2, 2))
         return torch.cat(feats, -1)
 
+    def pair_features(self, x: torch.Tensor, extents: torch.Tensor) -> torch.Tensor:
+        """(B, N, N, PAIR_FEATURES) for slot i (row) and slot j (column), in metres from the noisy room-frame
+        slots: j's centre in i's frame (along i's local x and z axes), the gaps between their axis-aligned
+        footprints along x and z (negative: overlapping), and j's yaw relative to i's (cos, sin)."""
+        centre, _, u_x, u_z, half = self._slot_geometry(x, extents)
+        cos, sin = u_x[..., 0], u_z[..., 0]
+        d = centre[:, None, :] - centre[:, :, None]  # [b, i, j] = c_j - c_i
+        local = torch.stack([(d * u_x[:, :, None]).sum(-1), (d * u_z[:, :, None]).sum(-1)], -1)
+        reach = footprint_reach(half, cos, sin)
+        gap = d.abs() - reach[:, :, None] - reach[:, None, :]
+        rel = torch.stack([cos[:, None] * cos[:, :, None] + sin[:, None] * sin[:, :, None],
+                           sin[:, None] * cos[:, :, None] - cos[:, None] * sin[:, :, None]], -1)
+        return torch.cat([local.clamp(-4, 4), gap.clamp(-2, 2), rel], -1)
+
     def _metres(self, v: torch.Tensor, which: int) -> torch.Tensor:
         """Scaled (x, z) features -> metres: ``which`` 0 for translations, 1 for half sizes."""
         lo, hi = self.metric_bounds.view(2, 2, 2)[which]
@@ -411,8 +448,13 @@ class SceneDenoiser(nn.Module):
             extents = raw[:, 4 * k:4 * k + PACKED_EXTENTS] if self.config.room_frame else None
             floor_context = floor_context[:, :-rows]
             h = h + self.wall_embed(self.wall_features(x, points, extents))
-        for block in self.blocks:
-            h = block(h, temb, floor_context)
+        biases = [None] * len(self.blocks)
+        if self.config.pair_bias:  # (B, N, N, L * H) -> L x (B, H, N, N)
+            n, heads = x.shape[1], self.config.num_heads
+            bias = self.pair_embed(self.pair_features(x, extents)).view(b, n, n, len(self.blocks), heads)
+            biases = bias.permute(3, 0, 4, 1, 2).unbind(0)
+        for block, bias in zip(self.blocks, biases):
+            h = block(h, temb, floor_context, bias)
         shift, scale = self.final_ada(temb).chunk(2, dim=-1)
         return self.out(modulate(self.final_norm(h), shift, scale))
 
@@ -436,6 +478,8 @@ class SceneDenoiser(nn.Module):
         macs += c.num_layers * per_block + 2 * d * d + n * d * k
         if c.floor_slot_features:
             macs += n * (self.num_wall_features * d + d * d)
+        if c.pair_bias:
+            macs += n * n * 64 * (PAIR_FEATURES + c.num_layers * c.num_heads)
         if include_floor:
             w = list(c.pointnet)
             macs += num_points * sum(a * b for a, b in zip(w[:-2], w[1:-1])) + w[-2] * w[-1]

@@ -145,6 +145,7 @@ def main(argv=None) -> int:
     p.add_argument("--max-objects", type=int, default=0, help="drop reference rooms with more objects (0: keep)")
     p.add_argument("--seed", type=int, default=0, help="sampling seed")
     p.add_argument("--eta", type=float, nargs="+", default=[1.0])
+    p.add_argument("--steps", type=int, default=20, help="DDIM steps per sample")
     p.add_argument("--threads", type=int, default=1)
     p.add_argument("--floor-usage", action="store_true", help="also measure how much the floor is used")
     p.add_argument("--denoise-from", type=int, nargs="*", default=[],
@@ -158,7 +159,7 @@ def main(argv=None) -> int:
         ref = [lay for lay in ref if len(lay) <= args.max_objects]
     if args.num_scenes:
         ref = ref[:args.num_scenes]
-    rows = evaluate(prior, ref, seed=args.seed, etas=args.eta)
+    rows = evaluate(prior, ref, seed=args.seed, etas=args.eta, num_steps=args.steps)
     print(f"{args.checkpoint} (step {prior.meta.get('step')}) vs {args.reference} "
           f"(seed {args.data_seed}, {len(ref)} rooms)")
     print(table(rows))
@@ -169,7 +170,7 @@ def main(argv=None) -> int:
         print("floor usage:", {k: round(v, 4) for k, v in rows["floor_usage"].items()})
     if args.denoise_from:
         rows["denoised_reference"] = denoise_from(prior, [lay for lay in ref if len(lay) <= prior.num_slots],
-                                                  args.denoise_from, args.seed)
+                                                  args.denoise_from, args.seed, args.steps)
         print("reference rooms noised to t and denoised by the prior:")
         print(table(rows["denoised_reference"]))
     if args.json:

@@ -73,7 +73,7 @@ def test_permutation_equivariance_over_slots():
 
 
 def test_global_floor_feature_is_a_set_function_without_point_tokens():
-    cfg = DenoiserConfig.from_preset("tiny", floor_point_tokens=0, floor_slot_features=False)
+    cfg = DenoiserConfig.from_preset("tiny", floor_point_tokens=0, floor_slot_features=False, pair_bias=False)
     net = _randomised(SceneDenoiser(cfg, BEDROOM.feature_dim))
     x, t, floor = torch.randn(2, 12, BEDROOM.feature_dim), torch.tensor([3, 700]), torch.randn(2, 256, 4)
     with torch.no_grad():  # max-pooled PointNet feature: any order of the points
@@ -89,7 +89,7 @@ def test_floor_conditioning_options(points, adaln, walls, room):
     together; the context is [adaLN row] + tokens + [raw boundary points (+ the floor's half-extents in the
     room frame) packed in rows of width d]."""
     cfg = DenoiserConfig.from_preset("tiny", floor_point_tokens=points, floor_adaln=adaln,
-                                     floor_slot_features=walls, room_frame=room)
+                                     floor_slot_features=walls, room_frame=room, pair_bias=walls and room)
     net = _randomised(SceneDenoiser(cfg, BEDROOM.feature_dim))
     floor = torch.randn(2, 256, 4)
     ctx = net.encode_floor(floor)
@@ -101,9 +101,12 @@ def test_floor_conditioning_options(points, adaln, walls, room):
         assert not torch.allclose(net(x, t), net(x, t, floor))
     assert net.flops_per_scene(12, include_floor=True) > net.flops_per_scene(12)
     with pytest.raises(ValueError, match="at least one floor token"):
-        DenoiserConfig.from_preset("tiny", floor_tokens=0, floor_point_tokens=0, floor_slot_features=False)
+        DenoiserConfig.from_preset("tiny", floor_tokens=0, floor_point_tokens=0, floor_slot_features=False,
+                                   pair_bias=False)
     with pytest.raises(ValueError, match="floor_slot_features needs"):
-        DenoiserConfig.from_preset("tiny", floor_point_tokens=0)
+        DenoiserConfig.from_preset("tiny", floor_point_tokens=0, pair_bias=False)
+    with pytest.raises(ValueError, match="pair_bias needs room_frame"):
+        DenoiserConfig.from_preset("tiny", room_frame=False)
 
 
 def test_wall_features_measure_the_nearest_walls():
@@ -136,6 +139,35 @@ def test_wall_features_measure_the_nearest_walls():
     assert torch.allclose(net.wall_features(x, small, extents)[0, 0, 12:], torch.tensor([0.2, 0.15]))
     x[0, 0, 6], x[0, 0, 7] = 0.0, 1.0
     assert torch.allclose(net.wall_features(x, small, extents)[0, 0, 12:], torch.tensor([0.225, 0.1125]))
+
+
+def test_pair_features_measure_one_slot_from_another():
+    """Room half-extents (1.0, 0.8) m (features taken as metres until set_metric_scale). Slot 0: half size
+    (0.3, 0.2), yaw 0, at the centre. Slot 1: half size (0.1, 0.1), turned by 90 degrees, centre 0.5 m along
+    +x (room-frame x = 0.5 / 0.9). Seen from slot 0: offset (0.5, 0) in its frame, footprint gaps 0.1 m
+    along x and -0.3 m along z (overlapping in z), relative yaw 90 degrees; seen from slot 1 the offset is
+    (0, -0.5) in its turned frame and the relative yaw -90 degrees."""
+    net = SceneDenoiser(DenoiserConfig.tiny(), BEDROOM.feature_dim)
+    x = torch.zeros(1, 2, BEDROOM.feature_dim)
+    x[0, 0, [3, 5, 6]] = torch.tensor([0.3, 0.2, 1.0])
+    x[0, 1, [0, 3, 5, 7]] = torch.tensor([0.5 / 0.9, 0.1, 0.1, 1.0])
+    f = net.pair_features(x, torch.tensor([[1.0, 0.8]]))[0]
+    assert f.shape == (2, 2, 6)
+    assert torch.allclose(f[0, 1], torch.tensor([0.5, 0.0, 0.1, -0.3, 0.0, 1.0]), atol=1e-6)
+    assert torch.allclose(f[1, 0], torch.tensor([0.0, -0.5, 0.1, -0.3, 0.0, -1.0]), atol=1e-6)
+    # the bias starts at zero (a pair-bias denoiser begins as one without it) and then moves the output
+    cfg = DenoiserConfig.tiny()
+    torch.manual_seed(0)
+    with_bias = _randomised(SceneDenoiser(cfg, BEDROOM.feature_dim))
+    xt, t, floor = torch.randn(2, 12, BEDROOM.feature_dim), torch.tensor([5, 50]), torch.randn(2, 256, 4)
+    with torch.no_grad():
+        before = with_bias(xt, t, floor)
+        with_bias.pair_embed[2].weight.zero_()
+        with_bias.pair_embed[2].bias.zero_()
+        assert not torch.allclose(before, with_bias(xt, t, floor))
+        without = SceneDenoiser(replace(cfg, pair_bias=False), BEDROOM.feature_dim)
+        without.load_state_dict({k: v for k, v in with_bias.state_dict().items() if not k.startswith("pair_embed")})
+        assert torch.allclose(with_bias(xt, t, floor), without(xt, t, floor), atol=1e-6)
 
 
 def test_room_frame_puts_walls_at_plus_minus_one():
@@ -301,9 +333,9 @@ def test_load_rejects_other_files_clearly(tmp_path):
 def test_checkpoints_without_the_floor_options_load_as_the_original_design(tmp_path):
     torch.manual_seed(0)
     prior = ScenePrior.create("bedroom", _stats(), "tiny", floor_point_tokens=0, floor_adaln=False,
-                              floor_slot_features=False, room_frame=False)
+                              floor_slot_features=False, room_frame=False, pair_bias=False)
     state = prior.state()
-    for key in ("floor_point_tokens", "floor_adaln", "floor_slot_features", "room_frame"):  # written before these
+    for key in ("floor_point_tokens", "floor_adaln", "floor_slot_features", "room_frame", "pair_bias"):  # written before these
         del state["denoiser_config"][key]
     del state["stats"]["translation_frame"]
     atomic_torch_save(state, tmp_path / "old.pt")
