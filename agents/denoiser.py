@@ -49,7 +49,7 @@ input, which no real floor produces (its normals are unit vectors).
 The dataclass defaults of the floor options (``floor_point_tokens=0``, ``floor_adaln=False``,
 ``floor_slot_features=False``, ``room_frame=False``, ``pair_bias=False``) are the original design, so
 checkpoints written before these fields existed load unchanged; the ``paper`` and ``small`` presets switch
-all five on.
+on the first four (``pair_bias`` did not measurably help: docs/results/prior_bedroom_small.md).
 """
 
 from __future__ import annotations
@@ -138,18 +138,17 @@ class DenoiserConfig:
     def paper(cls) -> "DenoiserConfig":
         """iARCS / MiDiffusion size: 8 layers, width 512, 4 heads, feed-forward 2048, dropout 0.1, PointNet
         [4, 64, 64, 512, 64]; floor conditioning through adaLN and 64 per-point tokens as in ``small``."""
-        return cls(floor_point_tokens=64, floor_adaln=True, floor_slot_features=True, room_frame=True,
-                   pair_bias=True)
+        return cls(floor_point_tokens=64, floor_adaln=True, floor_slot_features=True, room_frame=True)
 
     @classmethod
     def small(cls) -> "DenoiserConfig":
         """CPU default: a 20-step DDIM rollout of 32 bedrooms in about a second on 2 cores."""
         return cls(num_layers=6, width=128, num_heads=4, ff_dim=512, dropout=0.0, floor_point_tokens=64,
-                   floor_adaln=True, floor_slot_features=True, room_frame=True, pair_bias=True)
+                   floor_adaln=True, floor_slot_features=True, room_frame=True)
 
     @classmethod
     def tiny(cls) -> "DenoiserConfig":
-        """For tests only."""
+        """For tests only (with every option on, ``pair_bias`` included)."""
         return cls(num_layers=1, width=32, num_heads=2, ff_dim=64, dropout=0.0, pointnet=(4, 16, 32, 16),
                    floor_tokens=2, floor_point_tokens=8, floor_adaln=True, floor_slot_features=True, room_frame=True,
                    pair_bias=True)
