@@ -139,6 +139,8 @@ def test_wall_features_measure_the_nearest_walls():
     assert torch.allclose(net.wall_features(x, small, extents)[0, 0, 12:], torch.tensor([0.2, 0.15]))
     x[0, 0, 6], x[0, 0, 7] = 0.0, 1.0
     assert torch.allclose(net.wall_features(x, small, extents)[0, 0, 12:], torch.tensor([0.225, 0.1125]))
+    ctx = net.encode_floor(small)  # forward reads the extents back from the context, after 8 packed points
+    assert torch.allclose(ctx[0, -2:].reshape(-1)[4 * 8:4 * 8 + 2], extents[0])
 
 
 def test_pair_features_measure_one_slot_from_another():
