@@ -4,6 +4,7 @@ bed, beds per room, and the five task success rates (hand-written checkers).
 
     .venv/bin/python benchmarks/relation_fidelity.py                       # prior and shipped stage 1
     .venv/bin/python benchmarks/relation_fidelity.py --runs out/train/task_two_nightstands
+    .venv/bin/python benchmarks/relation_fidelity.py --priors out/pretrain/bedroom_small/prior.pt
 """
 
 from __future__ import annotations
@@ -43,8 +44,10 @@ def main() -> None:
     parser.add_argument("--num-scenes", type=int, default=256)
     parser.add_argument("--seed", type=int, default=777, help="seed of the held-out floors and the data rooms")
     parser.add_argument("--runs", nargs="*", default=[], help="training run folders whose adapters to add")
+    parser.add_argument("--priors", nargs="*", default=[], help="other prior checkpoints (prior.pt) to add")
     args = parser.parse_args()
     torch.set_num_threads(1)
+    from agents.denoiser import ScenePrior
     from agents.train import load_stage1_policy, load_trained_policy
 
     rows = {"procedural data": relation_row(SceneBatch.from_layouts(generate_layouts("bedroom", args.num_scenes,
@@ -54,6 +57,9 @@ def main() -> None:
     for name, context in (("prior", stage1.base_policy), ("stage 1", contextlib.nullcontext)):
         with context():
             rows[name] = relation_row(stage1.sample(floors, generator=torch.Generator().manual_seed(0)))
+    for path in args.priors:
+        rows[path] = relation_row(ScenePrior.load(path).sample(floors, generator=torch.Generator().manual_seed(0),
+                                                                 batch_size=64))
     for run in args.runs:
         policy, _ = load_trained_policy(run)
         rows[run] = relation_row(policy.sample(floors, generator=torch.Generator().manual_seed(0)))
