@@ -17,13 +17,21 @@ batch's device. They are registered by name in :data:`REWARDS` (add your own wit
   object-count histogram and the training set's (``DatasetStats.count_distribution``), both smoothed
   with ``eps``; the same value for every scene of the batch (it rewards the batch as a whole, which keeps
   the count distribution from collapsing). ``mode="log_prob"``: per scene, the training log-probability
-  of the scene's object count (smoothed), which ranks scenes within a batch.
+  of the scene's object count (smoothed), which ranks scenes within a batch. ``mode="match"``: per scene,
+  ``log(p_train(n) / p_batch(n))`` of its count n, the per-scene score of ``-KL(batch || training)`` (see
+  below).
 * ``class_presence`` (our addition to the object-count prior): per scene, the training log-likelihood of
   which classes it contains, sum_c [x_c log p_c + (1 - x_c) log(1 - p_c)], with x_c = 1 when the scene has
   an object of class c and p_c = ``DatasetStats.class_presence`` (clipped to [eps, 1 - eps]). The count
   term alone lets stage 1 drop the hardest object to place (the bed of a bedroom: 0.85 beds per room in
   the prior's samples, 0.18 after stage 1); this term makes a bedroom without a bed cost what it costs
-  under the data.
+  under the data. That log-likelihood is mode-seeking: it rewards every class present in fewer than half
+  of the training rooms for being absent. ``mode="match"`` rewards matching the rates instead:
+  sum_c [x_c log(p_c / q_c) + (1 - x_c) log((1 - p_c) / (1 - q_c))] with q_c the batch's own presence
+  rate. Its batch mean is ``-KL(q || p)`` summed over the classes' Bernoullis, and (up to a constant per
+  batch, which the per-floor advantage normalisation removes) it is the per-scene score whose policy
+  gradient descends that KL: a class rarer in the batch than in the data pays for being present, a class
+  rarer in the data pays for being absent, and every term is 0 once the batch has the training rates.
 
 Ground objects are all but ceiling and pendant lamps; object counts include every non-empty slot.
 The rewards run torch single-threaded (``iarcs_env.geometry.single_thread``): their tensors are small, and
@@ -122,30 +130,35 @@ def _count_distribution(stats: DatasetStats | None, distribution, n: int) -> np.
 @single_thread()
 def object_count_reward(batch: SceneBatch, stats: DatasetStats | None = None, count_distribution=None,
                         mode: str = "kl", eps: float = 1e-4) -> torch.Tensor:
-    """Object-count prior: ``-KL(batch || training)`` for every scene (``mode="kl"``) or the training
-    log-probability of each scene's count (``mode="log_prob"``)."""
-    counts = batch.mask.sum(1).cpu().numpy()
+    """Object-count prior: ``-KL(batch || training)`` for every scene (``mode="kl"``), the training
+    log-probability of each scene's count (``mode="log_prob"``) or its per-scene score
+    ``log(p_train(n) / p_batch(n))`` (``mode="match"``)."""
+    if mode not in ("kl", "log_prob", "match"):
+        raise ValueError(f"object_count mode must be 'kl', 'log_prob' or 'match', not {mode!r}")
     train = _count_distribution(stats, count_distribution, batch.num_slots)
+    counts = np.clip(batch.mask.sum(1).cpu().numpy(), 0, len(train) - 1)
+    p_train = (train + eps) / (train + eps).sum()
     if mode == "log_prob":
-        logp = np.log((train + eps) / (train + eps).sum())
-        return _out(logp[np.clip(counts, 0, len(logp) - 1)], batch)
-    if mode != "kl":
-        raise ValueError(f"object_count mode must be 'kl' or 'log_prob', not {mode!r}")
-    hist = np.bincount(np.clip(counts, 0, len(train) - 1), minlength=len(train)).astype(np.float64)
-    p = (hist / max(hist.sum(), 1) + eps)
-    q = train + eps
-    p, q = p / p.sum(), q / q.sum()
-    kl = float(np.sum(p * np.log(p / q)))
+        return _out(np.log(p_train)[counts], batch)
+    hist = np.bincount(counts, minlength=len(train)).astype(np.float64)
+    p_batch = hist / max(hist.sum(), 1) + eps
+    p_batch = p_batch / p_batch.sum()
+    if mode == "match":
+        return _out(np.log(p_train / p_batch)[counts], batch)
+    kl = float(np.sum(p_batch * np.log(p_batch / p_train)))
     return _out(np.full(batch.batch_size, -kl), batch)
 
 
 @register_reward("class_presence")
 @single_thread()
 def class_presence_reward(batch: SceneBatch, stats: DatasetStats | None = None, class_presence=None,
-                          eps: float = 1e-3) -> torch.Tensor:
+                          mode: str = "log_prob", eps: float = 1e-3) -> torch.Tensor:
     """Class-presence prior: the training log-likelihood of the set of classes in each scene (a product of
     one Bernoulli per class, with the training rooms' presence rates ``class_presence`` or
-    ``stats.class_presence``)."""
+    ``stats.class_presence``; ``mode="log_prob"``), or its rate-matching score against the batch's own
+    presence rates (``mode="match"``; module doc)."""
+    if mode not in ("log_prob", "match"):
+        raise ValueError(f"class_presence mode must be 'log_prob' or 'match', not {mode!r}")
     if class_presence is None:
         if stats is None or not stats.class_presence:
             raise ValueError("the class_presence reward needs each class's presence rate in the training rooms: "
@@ -160,4 +173,7 @@ def class_presence_reward(batch: SceneBatch, stats: DatasetStats | None = None, 
                      device=batch.labels.device).clamp(eps, 1 - eps)
     onehot = torch.nn.functional.one_hot(batch.labels.clamp(min=0), len(labels) + 1)[..., : len(labels)]
     present = (onehot * batch.mask[..., None]).amax(1).float()  # (B, C)
+    if mode == "match":
+        q = present.mean(0).clamp(eps, 1 - eps)
+        return (present * (p / q).log() + (1 - present) * ((1 - p) / (1 - q)).log()).sum(1)
     return (present * p.log() + (1 - present) * (1 - p).log()).sum(1)

@@ -95,6 +95,41 @@ def test_class_presence_prior_is_the_bernoulli_log_likelihood_of_the_classes_pre
         class_presence_reward(scenes, class_presence={"sofa_bed": 0.5})
 
 
+def test_match_modes_score_the_batch_against_the_training_rates():
+    bed, stand = box("double_bed", 0.0, 0.0, 1.0, 1.1), box("nightstand", 1.4, -0.8, 0.25, 0.25)
+    with_bed, without = make_layout([bed, stand]), make_layout([stand])
+    stats = DatasetStats.from_layouts([with_bed] * 3 + [without])  # beds in 75% of the rooms
+    # a batch at the training rate: every term is 0 (nothing to correct)
+    at_rate = class_presence_reward(SceneBatch.from_layouts([with_bed] * 3 + [without], num_slots=12), stats=stats,
+                                    mode="match")
+    np.testing.assert_allclose(at_rate.numpy(), 0.0, atol=1e-5)
+    # beds in 1 of 4 scenes (q = 0.25 < p = 0.75): the scene with the bed gains log(0.75 / 0.25), the others
+    # score the absence of a bed at log(0.25 / 0.75): with p above q, having the class is what is rewarded
+    few = class_presence_reward(SceneBatch.from_layouts([with_bed] + [without] * 3, num_slots=12), stats=stats,
+                                mode="match")
+    np.testing.assert_allclose(few.numpy(), [np.log(0.75 / 0.25)] + [np.log(0.25 / 0.75)] * 3, rtol=1e-4)
+    # beds in every scene (q = 1, clipped): having one costs what an over-represented class should
+    many = class_presence_reward(SceneBatch.from_layouts([with_bed] * 4, num_slots=12), stats=stats, mode="match")
+    assert (many < 0).all()
+    # its batch mean is minus the Bernoulli KL of the batch's rates to the training rates
+    q, p = 0.25, 0.75
+    kl = q * np.log(q / p) + (1 - q) * np.log((1 - q) / (1 - p))
+    assert few.mean().item() == pytest.approx(-kl, rel=1e-4)
+    with pytest.raises(ValueError, match="mode"):
+        class_presence_reward(SceneBatch.from_layouts([with_bed]), stats=stats, mode="kl")
+
+    # object counts: a scene with a count the batch over-represents scores below one it under-represents
+    train = random_layouts(40, seed=1, max_objects=6)
+    count_stats = DatasetStats.from_layouts(train)
+    same = object_count_reward(SceneBatch.from_layouts(train, num_slots=12), stats=count_stats, mode="match")
+    np.testing.assert_allclose(same.numpy(), 0.0, atol=0.02)  # the training set itself (up to eps)
+    # 6 objects: 22.5% of the training rooms, 1 in 8 of the batch; 1 object: 5% of them, 7 in 8 of the batch
+    skewed = [lay for lay in train if len(lay) == 6][:1] + [lay for lay in train if len(lay) == 1][:1] * 7
+    r = object_count_reward(SceneBatch.from_layouts(skewed, num_slots=12), stats=count_stats, mode="match")
+    assert r[0].item() == pytest.approx(np.log(0.225 / 0.125), abs=0.01)
+    assert r[1].item() == pytest.approx(np.log(0.05 / 0.875), abs=0.01) and torch.allclose(r[1:], r[1].expand(7))
+
+
 @pytest.mark.parametrize("seed", [0, 1])
 def test_rewards_agree_with_the_shapely_reference(seed):
     layouts = random_layouts(16, seed=seed)
