@@ -19,13 +19,16 @@ R_out of the samples checked against their own floors and against the next room'
 translation x, z features alone at t = 10, 50, 100, 300 with each of the three floors. ``--denoise-from``
 measures where the placement error arises: the reference rooms are noised to x_t (t on the 20-step DDIM
 grid, e.g. 50 200 950) and denoised by the prior for the rest of the rollout; the metrics of the result
-say whether the prior can restore a real layout from that noise level. Nothing is written into the repository unless
+say whether the prior can restore a real layout from that noise level. ``--collision-pairs`` lists which
+class pairs collide (and the overlap volumes) in the reference and in the samples of the first eta: it
+tells collisions the data has too (a nightstand tucked against a bed) from gross placement errors. Nothing is written into the repository unless
 ``--json`` / ``--markdown`` point there; real rooms are only read.
 """
 
 from __future__ import annotations
 
 import argparse
+import collections
 import json
 import sys
 import time
@@ -34,26 +37,29 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+import numpy as np  # noqa: E402
 import torch  # noqa: E402
 
 from agents.denoiser import ScenePrior  # noqa: E402
 from iarcs_env.datasets import load_layouts  # noqa: E402
 from iarcs_env.datasets.realism import class_kl as realism_class_kl  # noqa: E402
 from iarcs_env.datasets.realism import count_tvd  # noqa: E402
+from iarcs_env.geometry import COLLISION_VOLUME, box_overlap_volumes  # noqa: E402
 from iarcs_env.metrics import evaluate_layouts  # noqa: E402
+from iarcs_env.scene import SceneBatch  # noqa: E402
 
 KEYS = ("Col_obj", "Col_scene", "R_out", "R_reach", "R_walkable", "mean_objects")
 
 
 def evaluate(prior: ScenePrior, reference: list, seed: int = 0, etas=(1.0,), num_steps: int = 20,
-             batch_size: int = 64) -> dict:
+             batch_size: int = 64, guidance_scale: float = 1.0) -> dict:
     floors = [lay.centred().floor for lay in reference]
     rows = {"reference": evaluate_layouts(reference)}
     gens = {}
     for eta in etas:
         t0 = time.perf_counter()
         gen = prior.sample(floors, num_steps=num_steps, eta=eta, generator=torch.Generator().manual_seed(seed),
-                           batch_size=batch_size).to_layouts()
+                           batch_size=batch_size, guidance_scale=guidance_scale).to_layouts()
         seconds = time.perf_counter() - t0
         r = evaluate_layouts(gen, reference=reference)
         r["count_tvd"] = count_tvd(reference, gen)
@@ -135,6 +141,19 @@ def table(rows: dict) -> str:
     return "\n".join(lines)
 
 
+def collision_pairs(layouts: list, top: int = 8) -> dict:
+    """The class pairs of colliding ground objects (the Col_obj test), most frequent first, and the
+    quartiles of their overlap volumes (m^3)."""
+    b = SceneBatch.from_layouts(layouts)
+    overlap = box_overlap_volumes(b.translations, b.half_sizes, b.yaws, b.ground_mask)
+    pairs, volumes = collections.Counter(), []
+    for s, i, j in zip(*torch.where(torch.triu(overlap > COLLISION_VOLUME, 1))):
+        pairs[" - ".join(sorted(b.spec.classes[b.labels[s, k]] for k in (i, j)))] += 1
+        volumes.append(float(overlap[s, i, j]))
+    return {"pairs": sum(pairs.values()), "overlap_m3_quartiles": np.quantile(volumes, [0.25, 0.5, 0.75]).tolist()
+            if volumes else [], "top": dict(pairs.most_common(top))}
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     p.add_argument("--checkpoint", default=str(ScenePrior.default_path("bedroom")))
@@ -146,10 +165,13 @@ def main(argv=None) -> int:
     p.add_argument("--seed", type=int, default=0, help="sampling seed")
     p.add_argument("--eta", type=float, nargs="+", default=[1.0])
     p.add_argument("--steps", type=int, default=20, help="DDIM steps per sample")
+    p.add_argument("--guidance", type=float, default=1.0,
+                   help="classifier-free guidance scale on the floor condition (1: none)")
     p.add_argument("--threads", type=int, default=1)
     p.add_argument("--floor-usage", action="store_true", help="also measure how much the floor is used")
     p.add_argument("--denoise-from", type=int, nargs="*", default=[],
                    help="also denoise the reference rooms from these noise levels t (DDIM grid), e.g. 50 200 950")
+    p.add_argument("--collision-pairs", action="store_true", help="also list the colliding class pairs")
     p.add_argument("--json", default=None)
     args = p.parse_args(argv)
     torch.set_num_threads(args.threads)
@@ -159,7 +181,7 @@ def main(argv=None) -> int:
         ref = [lay for lay in ref if len(lay) <= args.max_objects]
     if args.num_scenes:
         ref = ref[:args.num_scenes]
-    rows = evaluate(prior, ref, seed=args.seed, etas=args.eta, num_steps=args.steps)
+    rows = evaluate(prior, ref, seed=args.seed, etas=args.eta, num_steps=args.steps, guidance_scale=args.guidance)
     print(f"{args.checkpoint} (step {prior.meta.get('step')}) vs {args.reference} "
           f"(seed {args.data_seed}, {len(ref)} rooms)")
     print(table(rows))
@@ -173,6 +195,13 @@ def main(argv=None) -> int:
                                                   args.denoise_from, args.seed, args.steps)
         print("reference rooms noised to t and denoised by the prior:")
         print(table(rows["denoised_reference"]))
+    if args.collision_pairs:
+        rows["collision_pairs"] = {"reference": collision_pairs(ref),
+                                   "prior": collision_pairs(evaluate.last_generated[args.eta[0]])}
+        for name, res in rows["collision_pairs"].items():
+            print(f"{name}: {res['pairs']} colliding pairs, overlap volume quartiles (m^3) "
+                  f"{[round(v, 3) for v in res['overlap_m3_quartiles']]}; " +
+                  ", ".join(f"{k} {n}" for k, n in res["top"].items()))
     if args.json:
         Path(args.json).parent.mkdir(parents=True, exist_ok=True)
         Path(args.json).write_text(json.dumps({"args": vars(args), "step": prior.meta.get("step"), "rows": rows},

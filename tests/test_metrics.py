@@ -178,3 +178,23 @@ def test_real_bedrooms_land_on_the_reference_figures():
     assert out["R_out"] == pytest.approx(0.073, abs=0.02)
     assert out["R_reach"] == pytest.approx(0.786, abs=0.02)
     assert out["R_walkable"] == pytest.approx(0.915, abs=0.02)
+
+
+def test_eval_prior_lists_the_colliding_class_pairs_with_their_overlap():
+    """benchmarks/eval_prior.py --collision-pairs: which pairs collide, and by how much (a script, loaded
+    from its file: torchrl installs a package called ``benchmarks``)."""
+    import importlib.util
+    from pathlib import Path
+
+    path = Path(__file__).resolve().parents[1] / "benchmarks" / "eval_prior.py"
+    spec = importlib.util.spec_from_file_location("eval_prior_script", path)
+    script = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(script)
+    # a nightstand 0.1 m into the bed (0.1 x 0.5 x 0.8 m of overlap), a chair clear of both, a lamp above
+    tucked = make_layout([box("double_bed", 1.5, 1.5, 1.0, 1.0), box("nightstand", 2.65, 1.5, 0.25, 0.25),
+                          box("chair", 3.6, 0.4, 0.2, 0.2)])
+    clear = make_layout([box("double_bed", 1.5, 1.5, 1.0, 1.0), box("nightstand", 2.8, 1.5, 0.25, 0.25)])
+    res = script.collision_pairs([tucked, clear])
+    assert res["pairs"] == 1 and res["top"] == {"double_bed - nightstand": 1}
+    assert res["overlap_m3_quartiles"][1] == pytest.approx(0.1 * 0.5 * 0.8, rel=1e-4)
+    assert script.collision_pairs([clear])["pairs"] == 0
