@@ -32,6 +32,12 @@ batch's device. They are registered by name in :data:`REWARDS` (add your own wit
   batch, which the per-floor advantage normalisation removes) it is the per-scene score whose policy
   gradient descends that KL: a class rarer in the batch than in the data pays for being present, a class
   rarer in the data pays for being absent, and every term is 0 once the batch has the training rates.
+  Presence alone leaves the number of objects of a class free: with ``object_count`` in ``"match"`` mode
+  stage 1 filled rooms with pendant lamps (they never collide; 0.60 -> 1.30 per room).
+* ``class_frequency`` (our addition): per scene, sum over its objects of log(f_c / g_c), f_c the share of
+  class c among the training objects (``DatasetStats.class_frequencies``) and g_c its share among the
+  batch's objects (both smoothed with ``eps``): the per-object score of ``-KL(batch || training)`` over
+  object labels (the KL_class metric), 0 once the batch has the training shares.
 
 Ground objects are all but ceiling and pendant lamps; object counts include every non-empty slot.
 The rewards run torch single-threaded (``iarcs_env.geometry.single_thread``): their tensors are small, and
@@ -177,3 +183,26 @@ def class_presence_reward(batch: SceneBatch, stats: DatasetStats | None = None, 
         q = present.mean(0).clamp(eps, 1 - eps)
         return (present * (p / q).log() + (1 - present) * ((1 - p) / (1 - q)).log()).sum(1)
     return (present * p.log() + (1 - present) * (1 - p).log()).sum(1)
+
+
+@register_reward("class_frequency")
+@single_thread()
+def class_frequency_reward(batch: SceneBatch, stats: DatasetStats | None = None, class_frequencies=None,
+                           eps: float = 1e-3) -> torch.Tensor:
+    """Class-frequency matching: per scene, ``sum over its objects of log(f_c / g_c)`` with the training
+    shares ``f`` (``class_frequencies`` or ``stats.class_frequencies``) and the batch's own shares ``g``."""
+    if class_frequencies is None:
+        if stats is None or not stats.class_frequencies:
+            raise ValueError("the class_frequency reward needs the training rooms' class frequencies: pass "
+                             "stats=DatasetStats (with class_frequencies) or class_frequencies={label: share}")
+        class_frequencies = stats.class_frequencies
+    labels = batch.spec.classes
+    unknown = sorted(set(class_frequencies) - set(labels))
+    if unknown:
+        raise ValueError(f"class_frequencies names classes that {batch.spec.name} rooms do not have: {unknown}")
+    f = torch.tensor([float(class_frequencies.get(c, 0.0)) for c in labels], dtype=torch.float64) + eps
+    onehot = torch.nn.functional.one_hot(batch.labels.clamp(min=0), len(labels) + 1)[..., : len(labels)]
+    counts = (onehot * batch.mask[..., None]).sum(1).to(torch.float64).cpu()  # (B, C) objects per class
+    g = counts.sum(0) / counts.sum().clamp(min=1) + eps
+    score = (f / f.sum()).log() - (g / g.sum()).log()
+    return _out(counts @ score, batch)

@@ -11,8 +11,8 @@ import shapely_reference as ref
 from iarcs_env.metrics import batch_float64
 from iarcs_env.scene import SceneBatch
 from iarcs_env.stats import DatasetStats
-from rewards import (REWARDS, CompositeReward, accessibility_reward, boundary_reward, class_presence_reward,
-                     collision_reward, object_count_reward, register_reward)
+from rewards import (REWARDS, CompositeReward, accessibility_reward, boundary_reward, class_frequency_reward,
+                     class_presence_reward, collision_reward, object_count_reward, register_reward)
 from scene_factory import L_SHAPE, box, make_layout, random_layouts
 
 
@@ -128,6 +128,31 @@ def test_match_modes_score_the_batch_against_the_training_rates():
     r = object_count_reward(SceneBatch.from_layouts(skewed, num_slots=12), stats=count_stats, mode="match")
     assert r[0].item() == pytest.approx(np.log(0.225 / 0.125), abs=0.01)
     assert r[1].item() == pytest.approx(np.log(0.05 / 0.875), abs=0.01) and torch.allclose(r[1:], r[1].expand(7))
+
+
+def test_class_frequency_scores_each_object_against_the_batch_and_training_shares():
+    bed, stand = box("double_bed", 0.0, 0.0, 1.0, 1.1), box("nightstand", 1.4, -0.8, 0.25, 0.25)
+    lamp = ("pendant_lamp", (0.0, 2.4, 0.0), (0.2, 0.1, 0.2), 0.0)
+    shares = {"double_bed": 0.25, "nightstand": 0.5, "pendant_lamp": 0.25}
+    eps = 1e-9
+    # the batch has the training shares: every score is 0
+    at_rate = [make_layout([bed, stand, stand, lamp])] * 2
+    np.testing.assert_allclose(class_frequency_reward(SceneBatch.from_layouts(at_rate, num_slots=12),
+                                                      class_frequencies=shares, eps=eps).numpy(), 0.0, atol=1e-6)
+    # lamps fill the rooms (3 of 6 objects): a room with a second lamp scores below one with a bed
+    lamps = [make_layout([stand, lamp, lamp]), make_layout([bed, stand, lamp])]
+    r = class_frequency_reward(SceneBatch.from_layouts(lamps, num_slots=12), class_frequencies=shares, eps=eps)
+    g = {"double_bed": 1 / 6, "nightstand": 2 / 6, "pendant_lamp": 3 / 6}
+    score = {c: np.log(shares[c] / g[c]) for c in shares}
+    np.testing.assert_allclose(r.numpy(), [score["nightstand"] + 2 * score["pendant_lamp"],
+                                           score["double_bed"] + score["nightstand"] + score["pendant_lamp"]],
+                               rtol=1e-5)
+    assert r[1] > 0 > r[0]
+    # the batch sum is N times minus the KL of the batch's shares to the training shares
+    kl = sum(g[c] * np.log(g[c] / shares[c]) for c in shares)
+    assert r.sum().item() == pytest.approx(-6 * kl, rel=1e-5)
+    with pytest.raises(ValueError, match="class_frequencies"):
+        class_frequency_reward(SceneBatch.from_layouts(lamps), class_frequencies={"sofa_bed": 1.0})
 
 
 @pytest.mark.parametrize("seed", [0, 1])
