@@ -73,3 +73,24 @@ def test_bad_train_configs_are_clear(tmp_path, capsys):
     assert "unknown key 'epoch' (did you mean 'epochs'?)" in capsys.readouterr().err
     assert main(["train", "--config", str(tmp_path / "none.yaml")]) == 2
     assert "no config file" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("path", sorted((REPO / "experiments").rglob("*.yaml")), ids=lambda p: p.stem)
+def test_every_experiment_config_loads_and_its_reward_builds(path):
+    """A typo in a shipped config (an unknown field, reward or reward option) fails here, not an hour into
+    a run."""
+    from agents.denoiser import ScenePrior
+    from agents.pretrain import load_config
+    from agents.train import load_train_config
+    from iarcs_env.datasets.procedural import generate_layouts
+    from iarcs_env.scene import SceneBatch
+    from rewards import CompositeReward
+
+    if path.stem.startswith("pretrain"):
+        assert load_config(path).steps > 0
+        return
+    cfg = load_train_config(path)
+    stats = ScenePrior.load_default(cfg.room).stats
+    total, terms = CompositeReward.from_config(dict(cfg.reward), stats=stats)(
+        SceneBatch.from_layouts(generate_layouts(cfg.room, 4, seed=0)))
+    assert set(terms) == set(cfg.reward) and total.shape == (4,) and total.isfinite().all()
