@@ -171,14 +171,8 @@ def class_presence_reward(batch: SceneBatch, stats: DatasetStats | None = None, 
                              "pass stats=DatasetStats with class_presence (recompute the statistics with "
                              "DatasetStats.from_layouts) or class_presence={label: rate}")
         class_presence = stats.class_presence
-    labels = batch.spec.classes
-    unknown = sorted(set(class_presence) - set(labels))
-    if unknown:
-        raise ValueError(f"class_presence names classes that {batch.spec.name} rooms do not have: {unknown}")
-    p = torch.tensor([float(class_presence.get(c, 0.0)) for c in labels], dtype=torch.float32,
-                     device=batch.labels.device).clamp(eps, 1 - eps)
-    onehot = torch.nn.functional.one_hot(batch.labels.clamp(min=0), len(labels) + 1)[..., : len(labels)]
-    present = (onehot * batch.mask[..., None]).amax(1).float()  # (B, C)
+    p = _per_class(batch, class_presence, "class_presence").float().clamp(eps, 1 - eps)
+    present = (_class_counts(batch) > 0).float()  # (B, C)
     if mode == "match":
         q = present.mean(0).clamp(eps, 1 - eps)
         return (present * (p / q).log() + (1 - present) * ((1 - p) / (1 - q)).log()).sum(1)
@@ -196,13 +190,23 @@ def class_frequency_reward(batch: SceneBatch, stats: DatasetStats | None = None,
             raise ValueError("the class_frequency reward needs the training rooms' class frequencies: pass "
                              "stats=DatasetStats (with class_frequencies) or class_frequencies={label: share}")
         class_frequencies = stats.class_frequencies
-    labels = batch.spec.classes
-    unknown = sorted(set(class_frequencies) - set(labels))
-    if unknown:
-        raise ValueError(f"class_frequencies names classes that {batch.spec.name} rooms do not have: {unknown}")
-    f = torch.tensor([float(class_frequencies.get(c, 0.0)) for c in labels], dtype=torch.float64) + eps
-    onehot = torch.nn.functional.one_hot(batch.labels.clamp(min=0), len(labels) + 1)[..., : len(labels)]
-    counts = (onehot * batch.mask[..., None]).sum(1).to(torch.float64).cpu()  # (B, C) objects per class
+    f = _per_class(batch, class_frequencies, "class_frequencies") + eps
+    counts = _class_counts(batch).to(f)  # (B, C)
     g = counts.sum(0) / counts.sum().clamp(min=1) + eps
-    score = (f / f.sum()).log() - (g / g.sum()).log()
-    return _out(counts @ score, batch)
+    return (counts @ ((f / f.sum()).log() - (g / g.sum()).log())).float()
+
+
+def _per_class(batch: SceneBatch, values: dict, name: str) -> torch.Tensor:
+    """``values`` ({label: number}, absent labels 0) as a float64 tensor in the order of the room's classes."""
+    labels = batch.spec.classes
+    unknown = sorted(set(values) - set(labels))
+    if unknown:
+        raise ValueError(f"{name} names classes that {batch.spec.name} rooms do not have: {unknown}")
+    return torch.tensor([float(values.get(c, 0.0)) for c in labels], dtype=torch.float64, device=batch.labels.device)
+
+
+def _class_counts(batch: SceneBatch) -> torch.Tensor:
+    """(B, C) objects of each class per scene."""
+    k = len(batch.spec.classes)
+    onehot = torch.nn.functional.one_hot(batch.labels.clamp(min=0), k + 1)[..., :k]
+    return (onehot * batch.mask[..., None]).sum(1)
