@@ -141,9 +141,9 @@ def table(rows: dict) -> str:
     return "\n".join(lines)
 
 
-def collision_pairs(layouts: list, top: int = 8) -> dict:
-    """The class pairs of colliding ground objects (the Col_obj test), most frequent first, and the
-    quartiles of their overlap volumes (m^3)."""
+def collision_pairs(layouts: list) -> dict:
+    """The class pairs of colliding ground objects (the Col_obj test) with their counts, most frequent
+    first, and the quartiles of their overlap volumes (m^3)."""
     b = SceneBatch.from_layouts(layouts)
     overlap = box_overlap_volumes(b.translations, b.half_sizes, b.yaws, b.ground_mask)
     pairs, volumes = collections.Counter(), []
@@ -151,7 +151,7 @@ def collision_pairs(layouts: list, top: int = 8) -> dict:
         pairs[" - ".join(sorted(b.spec.classes[b.labels[s, k]] for k in (i, j)))] += 1
         volumes.append(float(overlap[s, i, j]))
     return {"pairs": sum(pairs.values()), "overlap_m3_quartiles": np.quantile(volumes, [0.25, 0.5, 0.75]).tolist()
-            if volumes else [], "top": dict(pairs.most_common(top))}
+            if volumes else [], "counts": dict(pairs.most_common())}
 
 
 def main(argv=None) -> int:
@@ -201,7 +201,7 @@ def main(argv=None) -> int:
         for name, res in rows["collision_pairs"].items():
             print(f"{name}: {res['pairs']} colliding pairs, overlap volume quartiles (m^3) "
                   f"{[round(v, 3) for v in res['overlap_m3_quartiles']]}; " +
-                  ", ".join(f"{k} {n}" for k, n in res["top"].items()))
+                  ", ".join(f"{k} {n}" for k, n in list(res["counts"].items())[:8]) + " (all: --json)")
     if args.json:
         Path(args.json).parent.mkdir(parents=True, exist_ok=True)
         Path(args.json).write_text(json.dumps({"args": vars(args), "step": prior.meta.get("step"), "rows": rows},

@@ -5,6 +5,7 @@ set -euo pipefail
 RUN=${1:?usage: stage1_eval.sh RUN_DIR [OUT_DIR]}
 OUT=${2:-$RUN/eval500}
 IARCS=${IARCS:-.venv/bin/iarcs}
+PY=${PY:-.venv/bin/python}
 mkdir -p "$OUT"
 # 500 procedural bedrooms with a seed used neither by the prior (0) nor by RL training (1000): held-out floors
 $IARCS data generate --room bedroom --num-scenes 500 --seed 777 --out "$OUT/floors.json"
@@ -12,7 +13,7 @@ $IARCS sample --room bedroom --floors "$OUT/floors.json" --num-scenes 500 --seed
 $IARCS sample --room bedroom --floors "$OUT/floors.json" --num-scenes 500 --seed 0 --checkpoint "$RUN" --out "$OUT/stage1.json"
 $IARCS evaluate --scenes "$OUT/base.json" --reference "$OUT/base.json" --features none --name "prior (base)" --out "$OUT/base_report.json"
 $IARCS evaluate --scenes "$OUT/stage1.json" --reference "$OUT/base.json" --features none --name "stage 1 (LoRA)" --out "$OUT/stage1_report.json"
-.venv/bin/python - "$OUT" <<'PY'
+$PY - "$OUT" <<'PY'
 import json, sys
 out = sys.argv[1]
 b, s = (json.load(open(f"{out}/{n}_report.json")) for n in ("base", "stage1"))
@@ -20,9 +21,6 @@ print("| metric | prior | stage 1 | change |\n|---|---|---|---|")
 for k in ("Col_obj", "Col_scene", "R_out", "R_reach", "R_walkable"):
     print(f"| {k} | {b[k]:.4f} | {s[k]:.4f} | {100 * (s[k] - b[k]) / max(b[k], 1e-9):+.1f}% |")
 print(f"| class KL to the prior's samples | – | {s['KL_class']:.4f} | |")
-for name in ("base", "stage1"):  # the class most at risk of being dropped: beds (double, single, kids)
-    scenes = json.load(open(f"{out}/{name}.json"))["scenes"]
-    objects = [o["label"] for sc in scenes for o in sc["objects"]]
-    print(f"{name}: {len(objects) / len(scenes):.2f} objects / room, "
-          f"{sum(lbl.endswith('bed') for lbl in objects) / len(scenes):.2f} beds / room")
 PY
+# what the adapter added or removed, class by class (beds are the class most at risk)
+$PY benchmarks/class_counts.py "prior=$OUT/base.json" "stage 1=$OUT/stage1.json"

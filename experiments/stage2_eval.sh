@@ -50,3 +50,7 @@ for name, path in rows:
     print(f"| {name} | {100 * r['task_success_' + task]:.1f} | {100 * r['Col_obj']:.2f} | {100 * r['Col_scene']:.2f} | "
           f"{100 * r['R_out']:.2f} | {100 * r['R_reach']:.2f} | {r['R_walkable']:.3f} | {sca} |")
 PY
+# what each stage added or removed, class by class (a task can be passed by emptying the room)
+COUNTS=("prior=$OUT/prior.json" "stage 1=$OUT/stage1.json" "stage 2=$OUT/stage2.json")
+[ -f "$OUT/real_subset.json" ] && COUNTS+=("real (satisfying)=$OUT/real_subset.json")
+$PY benchmarks/class_counts.py "${COUNTS[@]}"

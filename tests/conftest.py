@@ -13,6 +13,17 @@ REPO = Path(__file__).resolve().parents[1]
 REAL_DATA = REPO.parent / "shared" / "data" / "3dfront"
 
 
+def load_benchmark(name: str):
+    """A script of ``benchmarks/`` as a module (loaded from its file: torchrl installs a package called
+    ``benchmarks``, so ``import benchmarks.x`` would find that one)."""
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location(f"benchmark_{name}", REPO / "benchmarks" / f"{name}.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
 def real_file(name: str) -> Path:
     path = REAL_DATA / name
     if not path.exists():

@@ -13,6 +13,7 @@ from iarcs_env import geometry as geo
 from iarcs_env.metrics import (HEADLINE, batch_float64, class_kl, count_distance, evaluate_batch,
                                evaluate_layouts)
 from scene_factory import L_SHAPE, RECT, box, make_layout, random_layouts
+from conftest import load_benchmark
 
 REAL = Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "3dfront" / "bedroom_val.json"
 
@@ -181,20 +182,32 @@ def test_real_bedrooms_land_on_the_reference_figures():
 
 
 def test_eval_prior_lists_the_colliding_class_pairs_with_their_overlap():
-    """benchmarks/eval_prior.py --collision-pairs: which pairs collide, and by how much (a script, loaded
-    from its file: torchrl installs a package called ``benchmarks``)."""
-    import importlib.util
-    from pathlib import Path
-
-    path = Path(__file__).resolve().parents[1] / "benchmarks" / "eval_prior.py"
-    spec = importlib.util.spec_from_file_location("eval_prior_script", path)
-    script = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(script)
+    """benchmarks/eval_prior.py --collision-pairs: which pairs collide, and by how much."""
+    script = load_benchmark("eval_prior")
     # a nightstand 0.1 m into the bed (0.1 x 0.5 x 0.8 m of overlap), a chair clear of both, a lamp above
     tucked = make_layout([box("double_bed", 1.5, 1.5, 1.0, 1.0), box("nightstand", 2.65, 1.5, 0.25, 0.25),
                           box("chair", 3.6, 0.4, 0.2, 0.2)])
     clear = make_layout([box("double_bed", 1.5, 1.5, 1.0, 1.0), box("nightstand", 2.8, 1.5, 0.25, 0.25)])
     res = script.collision_pairs([tucked, clear])
-    assert res["pairs"] == 1 and res["top"] == {"double_bed - nightstand": 1}
+    assert res["pairs"] == 1 and res["counts"] == {"double_bed - nightstand": 1}
     assert res["overlap_m3_quartiles"][1] == pytest.approx(0.1 * 0.5 * 0.8, rel=1e-4)
     assert script.collision_pairs([clear])["pairs"] == 0
+
+
+def test_class_counts_per_room_and_rooms_with_a_bed(tmp_path, capsys):
+    """benchmarks/class_counts.py: what a run added or removed, class by class."""
+    from iarcs_env.datasets import save_layouts
+
+    script = load_benchmark("class_counts")
+    bed, stand = box("double_bed", 1.5, 1.5, 1.0, 1.0), box("nightstand", 2.8, 1.5, 0.25, 0.25)
+    kids = box("kids_bed", 1.0, 1.0, 0.5, 0.9)
+    rooms = [make_layout([bed, stand, stand]), make_layout([kids]), make_layout([stand]), make_layout([stand])]
+    row = script.class_counts(rooms)
+    assert row["nightstand"] == 1.0 and row["double_bed"] == 0.25 and row["kids_bed"] == 0.25
+    assert row["bed (any)"] == 0.5 and row["rooms with a bed %"] == 50.0 and row["objects"] == 1.5
+    save_layouts(rooms, tmp_path / "a.json")
+    save_layouts(rooms[2:], tmp_path / "b.json")
+    assert script.main([f"before={tmp_path / 'a.json'}", str(tmp_path / "b.json")]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    assert lines[0] == "| per room | before | b |"
+    assert "| double_bed | 0.25 | 0.00 |" in lines and "| rooms with a bed % | 50.0 | 0.0 |" in lines
