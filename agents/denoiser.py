@@ -545,18 +545,20 @@ class ScenePrior:
         """(B, 256, 4) floor features of (centred) floors, on the model's device."""
         return floor_features([centre_floor(f) for f in floors], self.stats).to(self.device)
 
-    def model_fn(self, floor_cond: torch.Tensor, guidance_scale: float = 1.0):
-        """``f(x_t, t) -> eps`` for a batch of floor conditions, the floor encoded once."""
+    def model_fn(self, floor_cond: torch.Tensor, guidance_scale: float = 1.0, eps_fn=None):
+        """``f(x_t, t) -> eps`` for a batch of floor conditions, the floor encoded once. ``eps_fn(x_t, t,
+        floor_context=...)`` replaces the denoiser's own call (a policy that mixes adapted and prior features)."""
         net = self.denoiser
+        call = eps_fn or net
         ctx = net.encode_floor(floor_cond)
         unc = net.encode_floor(torch.zeros_like(floor_cond)) if guidance_scale != 1.0 else None
-        return guided_model_fn(lambda x, t, c: net(x, t, floor_context=c), ctx, guidance_scale, unc)
+        return guided_model_fn(lambda x, t, c: call(x, t, floor_context=c), ctx, guidance_scale, unc)
 
     # --- sampling ---------------------------------------------------------------------------------------
     @torch.no_grad()
     def sample_features(self, floors: Sequence[FloorPlan], num_steps: int = 20, eta: float = 1.0,
                         generator: torch.Generator | None = None, guidance_scale: float = 1.0,
-                        return_trajectory: bool = False):
+                        return_trajectory: bool = False, eps_fn=None):
         """DDIM rollout; returns x_0 (B, N, 8+K) (and the trajectory, see NoiseSchedule.sample)."""
         was_training = self.denoiser.training
         self.denoiser.eval()
@@ -565,21 +567,22 @@ class ScenePrior:
             shape = (len(floors), self.num_slots, self.spec.feature_dim)
             gen_device = generator.device if generator is not None else self.device
             x_T = torch.randn(shape, generator=generator, device=gen_device).to(self.device)
-            return self.schedule.sample(self.model_fn(cond, guidance_scale), shape, num_steps=num_steps, eta=eta,
+            return self.schedule.sample(self.model_fn(cond, guidance_scale, eps_fn), shape, num_steps=num_steps, eta=eta,
                                         generator=generator, x_T=x_T, return_trajectory=return_trajectory)
         finally:
             self.denoiser.train(was_training)
 
     def sample(self, floors: Sequence[FloorPlan], num_steps: int = 20, eta: float = 1.0,
                generator: torch.Generator | None = None, guidance_scale: float = 1.0,
-               batch_size: int | None = None, ids: Sequence[str] | None = None) -> SceneBatch:
+               batch_size: int | None = None, ids: Sequence[str] | None = None, eps_fn=None) -> SceneBatch:
         """Scenes for the given floor plans (any frame; returned centred). ``batch_size`` splits big requests
-        into chunks run one after another (the random stream is then consumed chunk by chunk)."""
+        into chunks run one after another (the random stream is then consumed chunk by chunk). ``eps_fn``: see
+        :meth:`model_fn`."""
         floors = [centre_floor(f) for f in floors]
         if not floors:
             raise ValueError("sample needs at least one floor plan")
         bs = batch_size or len(floors)
-        xs = [self.sample_features(floors[i:i + bs], num_steps, eta, generator, guidance_scale)
+        xs = [self.sample_features(floors[i:i + bs], num_steps, eta, generator, guidance_scale, eps_fn=eps_fn)
               for i in range(0, len(floors), bs)]
         x0 = torch.cat(xs).cpu()
         return SceneBatch.decode(x0, self.stats, floors, list(ids) if ids else

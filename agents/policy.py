@@ -6,11 +6,17 @@ with LoRA adapters (peft; r = 16, alpha = 16 on the attention's q/k/v/out projec
 parameters theta. Each task gets its own named adapter, saved and loaded in peft's own format
 (``adapter_config.json`` + ``adapter_model.safetensors``). The log-probability is the MEAN of per-element
 Gaussian log-densities over a scene (DESIGN.md), shared with :mod:`iarcs_env.schedule`.
+
+An adapter may adapt only some feature groups of a slot (``adapted``; e.g. ``("translation", "yaw")``): the
+others keep the prior's prediction, eps = where(adapted, eps_theta, eps_prior), so the adapter can move and
+turn objects but cannot add, remove or resize them. Stage 1 uses this to repair placement without changing
+what a room contains (RL on a collision penalty otherwise learns that deleting the bed is the cheapest fix).
 """
 
 from __future__ import annotations
 
 import contextlib
+import json
 from pathlib import Path
 from typing import Sequence
 
@@ -26,6 +32,19 @@ from iarcs_env.schedule import gaussian_log_prob
 from .denoiser import ScenePrior
 
 LORA_TARGETS = ["q_proj", "k_proj", "v_proj", "out_proj"]
+FEATURE_GROUPS = {"translation": slice(0, 3), "size": slice(3, 6), "yaw": slice(6, 8), "class": slice(8, None)}
+"""The slot features (iarcs_env.scene) an adapter can adapt, by group."""
+ADAPTED_FILE = "iarcs_adapted.json"
+"""Written beside peft's files: the feature groups the adapter adapts (absent: all of them)."""
+
+
+def check_feature_groups(groups) -> tuple[str, ...]:
+    """The adapted feature groups in canonical order; every group when ``groups`` is empty."""
+    groups = list(groups or FEATURE_GROUPS)
+    unknown = sorted(set(groups) - set(FEATURE_GROUPS))
+    if unknown:
+        raise ValueError(f"unknown feature group(s) {', '.join(unknown)}; choose from {', '.join(FEATURE_GROUPS)}")
+    return tuple(g for g in FEATURE_GROUPS if g in groups)
 
 
 class MeanNormal(torch.distributions.Normal):
@@ -52,10 +71,11 @@ class DiffusionPolicy(nn.Module):
         num_steps: DDIM steps of an episode (must match the environment's).
         eta: DDIM stochasticity; 1 gives the DDPM-like variance DDPO needs.
         lora_r, lora_alpha: LoRA rank and scale.
+        adapted: feature groups of :data:`FEATURE_GROUPS` the first adapter adapts (empty: all).
     """
 
     def __init__(self, prior: ScenePrior, adapter: str = "stage1", num_steps: int = 20, eta: float = 1.0,
-                 lora_r: int = 16, lora_alpha: int = 16):
+                 lora_r: int = 16, lora_alpha: int = 16, adapted=()):
         super().__init__()
         self.prior = prior
         self.num_steps = num_steps
@@ -66,15 +86,19 @@ class DiffusionPolicy(nn.Module):
         self.model: PeftModel = get_peft_model(prior.denoiser, self.lora_config, adapter_name=adapter)
         self.model.eval()  # no dropout: sampling and training log-probs must agree
         self.schedule = prior.schedule
+        self.adapted: dict[str, tuple[str, ...]] = {adapter: check_feature_groups(adapted)}
+        self._adapters_off = False
 
     # --- adapters ---------------------------------------------------------------------------------------
     @property
     def adapter(self) -> str:
         return self.model.active_adapter
 
-    def add_adapter(self, name: str, init_from: str | None = None) -> None:
-        """A new adapter (zero-initialised B, so the policy starts as the prior), or a copy of ``init_from``."""
+    def add_adapter(self, name: str, init_from: str | None = None, adapted=()) -> None:
+        """A new adapter (zero-initialised B, so the policy starts as the prior), or a copy of ``init_from``.
+        ``adapted``: its feature groups (empty: those of ``init_from``, or all)."""
         self.model.add_adapter(name, self.lora_config)
+        self.adapted[name] = check_feature_groups(adapted or (self.adapted[init_from] if init_from else ()))
         if init_from is not None:
             src = {k: v for k, v in self.model.state_dict().items() if f".{init_from}." in k}
             self.model.load_state_dict({k.replace(f".{init_from}.", f".{name}."): v for k, v in src.items()},
@@ -89,7 +113,9 @@ class DiffusionPolicy(nn.Module):
         """Write one adapter in peft's format to ``folder/<name>/``."""
         name = name or self.adapter
         self.model.save_pretrained(str(folder), selected_adapters=[name])
-        return Path(folder) / name if name != "default" else Path(folder)
+        path = Path(folder) / name if name != "default" else Path(folder)
+        (path / ADAPTED_FILE).write_text(json.dumps({"adapted": list(self.adapted[name])}))
+        return path
 
     def load_adapter(self, folder: str | Path, name: str | None = None) -> str:
         """Load an adapter saved by :meth:`save_adapter` (``folder`` is the adapter's own folder)."""
@@ -100,23 +126,55 @@ class DiffusionPolicy(nn.Module):
         if name in self.model.peft_config:
             self.model.delete_adapter(name)
         self.model.load_adapter(str(folder), adapter_name=name, is_trainable=True)
+        meta = folder / ADAPTED_FILE
+        self.adapted[name] = check_feature_groups(json.loads(meta.read_text())["adapted"] if meta.exists() else ())
         self.set_adapter(name)
         return name
 
+    @contextlib.contextmanager
     def base_policy(self):
-        """Context in which the policy is the prior (adapters disabled), e.g. for a KL penalty."""
-        return self.model.disable_adapter()
+        """Context in which the policy is the prior (adapters disabled), e.g. for a KL penalty; re-entrant."""
+        if self._adapters_off:
+            yield
+            return
+        self._adapters_off = True
+        try:
+            with self.model.disable_adapter():
+                yield
+        finally:
+            self._adapters_off = False
 
     def trainable_parameters(self) -> list[nn.Parameter]:
         return [p for p in self.model.parameters() if p.requires_grad]
 
     # --- the Gaussian -----------------------------------------------------------------------------------
+    def prior_features(self) -> torch.Tensor | None:
+        """(F,) bool mask of the slot features the active adapter leaves to the prior (None: it adapts all)."""
+        groups = self.adapted.get(self.adapter, tuple(FEATURE_GROUPS))
+        if len(groups) == len(FEATURE_GROUPS):
+            return None
+        keep = torch.ones(self.prior.spec.feature_dim, dtype=torch.bool)
+        for g in groups:
+            keep[FEATURE_GROUPS[g]] = False
+        return keep
+
+    def eps(self, x_t: torch.Tensor, t: torch.Tensor, floor: torch.Tensor | None = None,
+            floor_context: torch.Tensor | None = None) -> torch.Tensor:
+        """eps_theta(x_t, t, floor) with the active adapter, the prior's eps on the features it does not adapt."""
+        eps = self.model(x_t, t, floor=floor, floor_context=floor_context)
+        keep = self.prior_features()
+        if keep is None or self._adapters_off:
+            return eps
+        with torch.no_grad(), self.base_policy():
+            base = self.model(x_t, t, floor=floor, floor_context=floor_context)
+        return torch.where(keep.to(eps.device), base, eps)
+
     def forward(self, x_t: torch.Tensor, t: torch.Tensor, floor: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """mu_theta and sigma_t of pi(x_{t-1} | x_t, t, floor); shapes (B, N, F) (sigma broadcast)."""
         t = torch.as_tensor(t, device=x_t.device).long().reshape(-1)
         if t.numel() == 1:
             t = t.expand(x_t.shape[0])
-        eps = self.model(x_t, t, floor)
+        eps = self.eps(x_t, t, floor)
         t_prev = t - self.schedule.num_train_timesteps // self.num_steps
         # passing prev_sample makes step() compute the Gaussian without drawing from it
         out = self.schedule.step(eps, t, x_t, eta=self.eta, prev_sample=x_t, prev_timestep=t_prev)
@@ -142,7 +200,7 @@ class DiffusionPolicy(nn.Module):
                batch_size: int = 64) -> SceneBatch:
         """Scenes for the given floor plans with the active adapter (a whole DDIM rollout)."""
         return self.prior.sample(floors, num_steps=self.num_steps, eta=self.eta, generator=generator,
-                                 batch_size=batch_size)
+                                 batch_size=batch_size, eps_fn=self.eps)
 
     def actor(self):
         """A TorchRL ``ProbabilisticActor`` view: reads ``x_t``, ``t``, ``floor``; writes ``action`` and its

@@ -37,6 +37,10 @@ class TrainConfig:
     """Name of the LoRA adapter to train (one per task)."""
     init_adapter: str = ""
     """Optional adapter folder (peft format) to start from; ``default``: the shipped stage-1 adapter."""
+    adapt: list = field(default_factory=list)
+    """Feature groups the adapter adapts (agents.policy.FEATURE_GROUPS: translation, size, yaw, class); the
+    others keep the prior's prediction. Empty: all of them, or with ``init_adapter`` the same as that adapter.
+    ``[translation, yaw]`` moves and turns objects but keeps which objects a room has and their sizes."""
     algorithm: str = "ddpo"
     """ddpo (= ddpo-is) or ddpo-sf."""
     num_envs: int = 32
@@ -115,11 +119,11 @@ def build(cfg: TrainConfig, tensorboard_log: Path | None = None, task_reward=Non
 
     prior = build_prior(cfg)
     policy = DiffusionPolicy(prior, adapter="scratch" if cfg.init_adapter else cfg.adapter, num_steps=cfg.num_steps,
-                             eta=cfg.eta)
+                             eta=cfg.eta, adapted=cfg.adapt)
     if cfg.init_adapter:  # the trained adapter starts as a copy of init_adapter
         path = stage1_adapter_path(cfg.room) if cfg.init_adapter == "default" else cfg.init_adapter
         src = policy.load_adapter(path, name="init")
-        policy.add_adapter(cfg.adapter, init_from=src)
+        policy.add_adapter(cfg.adapter, init_from=src, adapted=cfg.adapt)
         policy.model.delete_adapter("scratch")
     if task_reward is None:
         reward = CompositeReward.from_config(cfg.reward, stats=prior.stats)
@@ -149,8 +153,9 @@ def run(cfg: TrainConfig, progress: bool = True, log=print):
     if DDPO.latest_checkpoint(ckpt) and saved.exists():
         before = yaml.safe_load(saved.read_text())
         now = dataclasses.asdict(cfg)
+        defaults = dataclasses.asdict(TrainConfig())  # a key missing from an older run's config had its default
         changed = [k for k in now if k not in ("epochs", "out", "eval_every", "checkpoint_every")
-                   and before.get(k) != now[k]]
+                   and before.get(k, defaults[k]) != now[k]]
         if changed:
             raise ValueError(f"{out} holds a run with other settings ({', '.join(changed)}); use another out folder")
     saved.write_text(yaml.safe_dump(dataclasses.asdict(cfg), sort_keys=False))

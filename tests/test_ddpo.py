@@ -205,3 +205,35 @@ def test_a_kill_during_save_leaves_a_loadable_checkpoint(tmp_path):
     assert resumed.epoch == 1
     resumed.save(tmp_path / "ckpt")  # the next save cleans up
     assert sorted(p.name for p in tmp_path.iterdir()) == ["ckpt"]
+
+
+def test_a_placement_adapter_moves_objects_but_keeps_the_priors_classes_and_sizes(tmp_path):
+    """adapt=[translation, yaw]: after training, the policy's Gaussian equals the prior's on the size and
+    class features for any state, and differs on translation; the choice survives save/load and is
+    inherited by an adapter initialised from it."""
+    policy = DiffusionPolicy(tiny_prior(), num_steps=STEPS, adapted=["yaw", "translation"])
+    params = {"learning_rate": 1e-2, "minibatch_size": 4, "clip_range": 0.2, "samples_per_floor": 4}
+    model = DDPO(policy, make_env(), verbose=0, **params)
+    model.learn(8 * STEPS * 2)
+    x = torch.randn(3, policy.prior.num_slots, policy.prior.spec.feature_dim, generator=torch.Generator().manual_seed(1))
+    t, floor = torch.full((3,), 400), policy.prior.floor_condition(FLOORS[:3])
+    with torch.no_grad():
+        mean, _ = policy(x, t, floor)
+        with policy.base_policy():
+            base, _ = policy(x, t, floor)
+    diff = (mean - base).abs().amax((0, 1))
+    assert torch.all(diff[3:6] == 0) and torch.all(diff[8:] == 0)  # sizes and classes: the prior's
+    assert diff[[0, 2]].min() > 1e-6 and diff[6:8].max() > 1e-6  # floor position and yaw: adapted
+
+    folder = policy.save_adapter(tmp_path / "adapters")
+    other = DiffusionPolicy(tiny_prior(), num_steps=STEPS, adapter="scratch")
+    other.load_adapter(folder)
+    assert other.adapted[other.adapter] == ("translation", "yaw")
+    assert torch.equal(other.prior_features(), policy.prior_features())
+    g = lambda: torch.Generator().manual_seed(9)  # noqa: E731
+    a, b = policy.sample(FLOORS, generator=g()), other.sample(FLOORS, generator=g())
+    assert torch.equal(a.labels, b.labels) and torch.allclose(a.translations, b.translations)
+    other.add_adapter("task", init_from=other.adapter)
+    assert other.adapted["task"] == ("translation", "yaw")
+    with pytest.raises(ValueError, match="unknown feature group.*colour.*choose from translation"):
+        DiffusionPolicy(tiny_prior(), num_steps=STEPS, adapted=["colour"])
