@@ -8,8 +8,11 @@ parameters theta. Each task gets its own named adapter, saved and loaded in peft
 Gaussian log-densities over a scene (DESIGN.md), shared with :mod:`iarcs_env.schedule`.
 
 An adapter may adapt only some feature groups of a slot (``adapted``; e.g. ``("translation", "yaw")``): the
-others keep the prior's prediction, eps = where(adapted, eps_theta, eps_prior), so the adapter can move and
-turn objects but cannot add, remove or resize them. Stage 1 uses this to repair placement without changing
+others keep the prior's prediction, eps = where(adapted, eps_theta, eps_prior). Without ``class``, the prior
+also decides which slots hold objects: a slot whose class the prior predicts (from x0_hat) to be ``empty``
+keeps the prior's eps on every feature, since an empty slot is also "geometry 0" and moving it would make
+the prior fill it. So an adapter of ``("translation", "yaw")`` moves and turns objects but does not add,
+remove or resize them. Stage 1 uses this to repair placement without changing
 what a room contains (RL on a collision penalty otherwise learns that deleting the bed is the cheapest fix).
 """
 
@@ -167,7 +170,11 @@ class DiffusionPolicy(nn.Module):
             return eps
         with torch.no_grad(), self.base_policy():
             base = self.model(x_t, t, floor=floor, floor_context=floor_context)
-        return torch.where(keep.to(eps.device), base, eps)
+        keep = keep.to(eps.device).expand_as(eps)
+        if "class" not in self.adapted[self.adapter]:  # slots the prior leaves empty stay the prior's
+            classes = self.schedule.predict_x0(x_t, t, base)[..., FEATURE_GROUPS["class"]]
+            keep = keep | (classes.argmax(-1) == classes.shape[-1] - 1)[..., None]
+        return torch.where(keep, base, eps)
 
     def forward(self, x_t: torch.Tensor, t: torch.Tensor, floor: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """mu_theta and sigma_t of pi(x_{t-1} | x_t, t, floor); shapes (B, N, F) (sigma broadcast)."""

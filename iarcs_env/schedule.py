@@ -195,6 +195,11 @@ class NoiseSchedule:
         var = (1 - a_prev) / (1 - a_t) * (1 - a_t / a_prev)
         return eta * var.clamp(min=0).sqrt()
 
+    def predict_x0(self, x_t: torch.Tensor, timestep: torch.Tensor | int, eps: torch.Tensor) -> torch.Tensor:
+        """x0_hat = (x_t - sqrt(1 - alpha-bar_t) eps) / sqrt(alpha-bar_t): the clean scene the model predicts."""
+        a_t = self._abar(timestep, x_t)
+        return (x_t - (1 - a_t).sqrt() * eps) / a_t.sqrt()
+
     def step(self, model_output: torch.Tensor, timestep: torch.Tensor | int, sample: torch.Tensor,
              eta: float = 1.0, generator: torch.Generator | None = None, prev_sample: torch.Tensor | None = None,
              prev_timestep: torch.Tensor | int | None = None, clip_sample: bool | None = None,
@@ -210,10 +215,8 @@ class NoiseSchedule:
             prev_timestep = self.previous_timestep(timestep)
         clip = self.config.clip_sample if clip_sample is None else clip_sample
         x_t, eps = sample, model_output
-        a_t = self._abar(timestep, x_t)  # alpha-bar_t
         a_prev = self._abar(prev_timestep, x_t)  # alpha-bar_{t_prev}, 1 when t_prev < 0
-        # x0_hat: the model's estimate of the clean scene
-        pred_x0 = (x_t - (1 - a_t).sqrt() * eps) / a_t.sqrt()
+        pred_x0 = self.predict_x0(x_t, timestep, eps)
         if clip:
             r = self.config.clip_sample_range
             pred_x0 = pred_x0.clamp(-r, r)

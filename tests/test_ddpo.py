@@ -209,21 +209,26 @@ def test_a_kill_during_save_leaves_a_loadable_checkpoint(tmp_path):
 
 def test_a_placement_adapter_moves_objects_but_keeps_the_priors_classes_and_sizes(tmp_path):
     """adapt=[translation, yaw]: after training, the policy's Gaussian equals the prior's on the size and
-    class features for any state, and differs on translation; the choice survives save/load and is
+    class features and on the slots the prior leaves empty, and differs on the objects' translation and yaw; the choice survives save/load and is
     inherited by an adapter initialised from it."""
     policy = DiffusionPolicy(tiny_prior(), num_steps=STEPS, adapted=["yaw", "translation"])
     params = {"learning_rate": 1e-2, "minibatch_size": 4, "clip_range": 0.2, "samples_per_floor": 4}
     model = DDPO(policy, make_env(), verbose=0, **params)
     model.learn(8 * STEPS * 2)
+    # near-clean states whose first 4 slots are empty (class `empty`, geometry 0) and the others hold objects
     x = torch.randn(3, policy.prior.num_slots, policy.prior.spec.feature_dim, generator=torch.Generator().manual_seed(1))
-    t, floor = torch.full((3,), 400), policy.prior.floor_condition(FLOORS[:3])
+    x[..., 8:] = -1.0
+    x[:, :4, :8], x[:, :4, -1], x[:, 4:, 8] = 0.0, 1.0, 1.0
+    t, floor = torch.full((3,), 10), policy.prior.floor_condition(FLOORS[:3])
     with torch.no_grad():
         mean, _ = policy(x, t, floor)
         with policy.base_policy():
             base, _ = policy(x, t, floor)
-    diff = (mean - base).abs().amax((0, 1))
-    assert torch.all(diff[3:6] == 0) and torch.all(diff[8:] == 0)  # sizes and classes: the prior's
-    assert diff[[0, 2]].min() > 1e-6 and diff[6:8].max() > 1e-6  # floor position and yaw: adapted
+    diff = (mean - base).abs()
+    assert torch.all(diff[:, :4] == 0)  # slots the prior leaves empty: the prior's on every feature
+    assert torch.all(diff[..., 3:6] == 0) and torch.all(diff[..., 8:] == 0)  # sizes and classes: the prior's
+    objects = diff[:, 4:].amax((0, 1))
+    assert objects[[0, 2]].min() > 1e-6 and objects[6:8].max() > 1e-6  # floor position and yaw: adapted
 
     folder = policy.save_adapter(tmp_path / "adapters")
     other = DiffusionPolicy(tiny_prior(), num_steps=STEPS, adapter="scratch")
