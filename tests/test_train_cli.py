@@ -94,3 +94,34 @@ def test_every_experiment_config_loads_and_its_reward_builds(path):
     total, terms = CompositeReward.from_config(dict(cfg.reward), stats=stats)(
         SceneBatch.from_layouts(generate_layouts(cfg.room, 4, seed=0)))
     assert set(terms) == set(cfg.reward) and total.shape == (4,) and total.isfinite().all()
+
+
+def test_sample_with_a_placement_adapter_keeps_the_priors_features(tmp_path):
+    """`iarcs sample --checkpoint ADAPTER` samples as the policy does: the features the adapter leaves to the
+    prior come from the prior (here: every class, since this adapter adapts translation and yaw only)."""
+    import torch
+
+    from agents.denoiser import ScenePrior
+    from agents.policy import DiffusionPolicy
+    from iarcs_env.datasets.procedural import generate_layouts
+
+    policy = DiffusionPolicy(ScenePrior.load_default("bedroom"), adapter="placement", num_steps=4,
+                             adapted=["translation", "yaw"])
+    torch.manual_seed(0)
+    with torch.no_grad():
+        for name, p in policy.model.named_parameters():
+            if "lora_B" in name:
+                p.normal_(0, 0.2)
+    folder = policy.save_adapter(tmp_path / "adapters")
+    out = tmp_path / "samples.json"
+    assert main(["sample", "--checkpoint", str(folder), "--num-scenes", "6", "--steps", "4", "--seed", "0",
+                 "--out", str(out)]) == 0
+    labels = [sorted(o["label"] for o in s["objects"]) for s in json.loads(out.read_text())["scenes"]]
+    floors = [l.floor for l in generate_layouts("bedroom", 6, seed=0)]
+
+    def sampled_labels(**kw):
+        batch = policy.prior.sample(floors, num_steps=4, generator=torch.Generator().manual_seed(0), **kw)
+        return [sorted(l.labels) for l in batch.to_layouts()]
+
+    assert labels == sampled_labels(eps_fn=policy.eps)
+    assert labels != sampled_labels()  # the LoRA model on every feature would pick other objects
