@@ -58,11 +58,6 @@ class DDPOConfig:
     """Standardise each term of a composite reward before the weighted sum, so that every term carries its
     weight's share of the signal whatever the spread of its values (e.g. a task reward in [0, 1] next to
     universal rewards that vary much more)."""
-    shared_content_noise: bool = False
-    """Variance reduction for adapters that leave features to the prior (``DiffusionPolicy(adapted=...)``): the
-    scenes of a floor plan's group share the noise (x_T and every step's) of those features, so they tend to
-    hold the same objects and their advantages compare placements rather than contents. Each scene is still
-    an exact sample of the policy."""
     kl_coef: float = 0.0
     """Weight of a KL penalty to the base policy (adapters disabled), against diversity collapse."""
     seed: int = 0
@@ -112,9 +107,6 @@ class DDPO:
         if cfg.per_term_advantages and not isinstance(getattr(self.venv.reward_fn, "weights", None), dict):
             raise ValueError("per_term_advantages needs a composite reward (rewards.composite.CompositeReward) whose "
                              "terms and weights it can standardise")
-        if cfg.shared_content_noise and policy.prior_features() is None:
-            raise ValueError("shared_content_noise needs an adapter that leaves some features to the prior "
-                             "(DiffusionPolicy(adapted=[...]), or `adapt:` in a training YAML)")
         self.optimizer = torch.optim.AdamW(policy.trainable_parameters(), lr=cfg.learning_rate,
                                            betas=(cfg.adam_beta1, cfg.adam_beta2),
                                            weight_decay=cfg.adam_weight_decay, eps=cfg.adam_epsilon)
@@ -153,17 +145,13 @@ class DDPO:
         floor_idx = np.repeat(picked, cfg.samples_per_floor)
         seed = None if self._env_seeded else cfg.seed
         self._env_seeded = True
-        options = {"floor_indices": floor_idx}
-        if cfg.shared_content_noise:
-            options["x_T"] = self._group_noise(venv.observation_space["x_t"].shape).numpy()
-        obs, _ = self.env.reset(seed=seed, options=options)
+        obs, _ = self.env.reset(seed=seed, options={"floor_indices": floor_idx})
         steps = []
         for _ in range(venv.num_steps):
             x_t = torch.from_numpy(obs["x_t"])
             t = torch.from_numpy(obs["t"])
             floor = torch.from_numpy(obs["floor"])
-            noise = self._group_noise(x_t.shape) if cfg.shared_content_noise else None
-            action, log_prob = self.policy.act(x_t, t, floor, generator=self.generator, noise=noise)
+            action, log_prob = self.policy.act(x_t, t, floor, generator=self.generator)
             steps.append({"x_t": x_t, "t": t, "floor": floor, "action": action, "sample_log_prob": log_prob})
             obs, reward, terminated, _, info = self.env.step(action.numpy())
         if not terminated.all():
@@ -178,15 +166,6 @@ class DDPO:
         self._last_scene = info.get("scene")
         self.num_timesteps += venv.num_envs * venv.num_steps
         return td
-
-    def _group_noise(self, shape) -> torch.Tensor:
-        """Standard normal noise (B, N, F) whose features left to the prior are the same within each floor
-        plan's group of ``samples_per_floor`` consecutive scenes (``shared_content_noise``)."""
-        z = torch.randn(tuple(shape), generator=self.generator)
-        groups = z.view(-1, self.config.samples_per_floor, *z.shape[1:])
-        prior_features = self.policy.prior_features()
-        groups[..., prior_features] = groups[:, :1][..., prior_features].expand_as(groups[..., prior_features])
-        return z
 
     def compute_advantages(self, rewards: torch.Tensor, floor_index: torch.Tensor,
                            terms: torch.Tensor | None = None) -> torch.Tensor:

@@ -193,17 +193,13 @@ class DiffusionPolicy(nn.Module):
         return gaussian_log_prob(x_prev, mean, std)
 
     @torch.no_grad()
-    def act(self, x_t, t, floor, generator: torch.Generator | None = None, deterministic: bool = False,
-            noise: torch.Tensor | None = None):
-        """Sample x_{t-1} (the mean when ``deterministic``; ``noise``: the standard normal draw to use) and its
-        log-probability."""
+    def act(self, x_t, t, floor, generator: torch.Generator | None = None, deterministic: bool = False):
+        """Sample x_{t-1} (the mean when ``deterministic``) and its log-probability."""
         mean, std = self(x_t, t, floor)
         if deterministic or self.eta == 0:
             x_prev = mean
         else:
-            if noise is None:
-                noise = torch.randn(mean.shape, generator=generator, dtype=mean.dtype, device=mean.device)
-            x_prev = mean + std * noise
+            x_prev = mean + std * torch.randn(mean.shape, generator=generator, dtype=mean.dtype, device=mean.device)
         return x_prev, gaussian_log_prob(x_prev, mean, std)  # std is already floored at MIN_STD
 
     @torch.no_grad()

@@ -133,8 +133,7 @@ class DenoisingVectorEnv(VectorEnv):
         return {"x_t": self._x.copy(), "t": t, "floor": self._floor_features[self._floor_idx].copy()}
 
     def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None):
-        """Draw B floor plans (``options={"floor_indices": [...]}`` picks them) and x_T ~ N(0, I)
-        (``options={"x_T": array (B, N, 8 + K)}`` gives it instead)."""
+        """Draw B floor plans (``options={"floor_indices": [...]}`` picks them) and x_T ~ N(0, I)."""
         super().reset(seed=seed)
         if options and "floor_indices" in options:
             idx = np.asarray(options["floor_indices"], np.int64).reshape(-1)
@@ -143,13 +142,7 @@ class DenoisingVectorEnv(VectorEnv):
             self._floor_idx = idx
         else:
             self._floor_idx = self.np_random.integers(0, len(self.floors), self.num_envs)
-        if options and options.get("x_T") is not None:
-            x_T = np.asarray(options["x_T"], np.float32)
-            if x_T.shape != self._x.shape:
-                raise ValueError(f"x_T must have shape {self._x.shape} (B, N, 8 + K); got {x_T.shape}")
-            self._x = x_T.copy()
-        else:
-            self._x = self.np_random.standard_normal(self._x.shape).astype(np.float32)
+        self._x = self.np_random.standard_normal(self._x.shape).astype(np.float32)
         self._k = 0
         self._needs_reset = False
         self.last_scene = None

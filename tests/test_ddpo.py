@@ -243,16 +243,3 @@ def test_a_placement_adapter_moves_objects_but_keeps_the_priors_classes_and_size
     with pytest.raises(ValueError, match="unknown feature group.*colour.*choose from translation"):
         DiffusionPolicy(tiny_prior(), num_steps=STEPS, adapted=["colour"])
 
-
-def test_shared_content_noise_ties_the_prior_features_within_a_floor_group():
-    """With shared_content_noise, the 4 scenes of a floor plan start from (and are stepped with) the same noise
-    on the features their adapter leaves to the prior, and with their own noise on the adapted ones."""
-    policy = DiffusionPolicy(tiny_prior(), num_steps=STEPS, adapted=["translation", "yaw"])
-    model = DDPO(policy, make_env(), verbose=0, samples_per_floor=4, shared_content_noise=True)
-    rollout = model.collect_rollouts()
-    x_T = rollout["x_t"][:, 0].view(2, 4, *rollout["x_t"].shape[2:])
-    assert torch.equal(x_T[:, 1:, :, 3:6], x_T[:, :1, :, 3:6].expand(-1, 3, -1, -1))  # sizes: shared
-    assert torch.equal(x_T[:, 1:, :, 8:], x_T[:, :1, :, 8:].expand(-1, 3, -1, -1))  # classes: shared
-    assert not torch.equal(x_T[:, 1], x_T[:, 0]) and not torch.equal(x_T[0], x_T[1])  # positions, floors: own
-    with pytest.raises(ValueError, match="shared_content_noise needs an adapter that leaves some features"):
-        DDPO(DiffusionPolicy(tiny_prior(), num_steps=STEPS), make_env(), verbose=0, shared_content_noise=True)
