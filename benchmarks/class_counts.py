@@ -5,12 +5,15 @@
 
 Each argument is ``NAME=FILE`` (or a file, named by its stem): a neutral-JSON scene file of one room type.
 Rows: every class with at least ``--min`` objects per room in some file, then beds of any kind per room,
-the share of rooms with a bed, and objects per room.
+the share of rooms with a bed, and objects per room. ``--sizes`` adds a second table: the median footprint
+(m^2) and top height (m) of each class with at least ``--sizes`` objects per room in the first file, to
+show an adapter that changes sizes (a stage-2 run that lowers the beds).
 """
 
 from __future__ import annotations
 
 import argparse
+import statistics
 import sys
 from collections import Counter
 from pathlib import Path
@@ -31,15 +34,30 @@ def class_counts(layouts) -> dict[str, float]:
     return row
 
 
+def class_sizes(layouts) -> dict[str, tuple[float, float]]:
+    """Per class: (median footprint area in m^2, median top height in m) over its objects."""
+    areas, tops = {}, {}
+    for lay in layouts:
+        for label, t, h in zip(lay.labels, lay.translations, lay.half_sizes):
+            areas.setdefault(label, []).append(4 * h[0] * h[2])
+            tops.setdefault(label, []).append(t[1] + h[1])
+    return {c: (statistics.median(areas[c]), statistics.median(tops[c])) for c in areas}
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("files", nargs="+", help="NAME=FILE or FILE (neutral-JSON scenes)")
     p.add_argument("--min", type=float, default=0.02, help="smallest objects per room of a class to list")
+    p.add_argument("--sizes", type=float, default=None, metavar="MIN",
+                   help="also list median footprints and top heights of the classes with at least MIN objects "
+                        "per room in the first file")
     args = p.parse_args(argv)
-    rows = {}
+    rows, sizes = {}, {}
     for item in args.files:
         name, _, path = item.rpartition("=")
-        rows[name or Path(path).stem] = class_counts(load_layouts(path, num_scenes=0))
+        layouts = load_layouts(path, num_scenes=0)
+        rows[name or Path(path).stem] = class_counts(layouts)
+        sizes[name or Path(path).stem] = class_sizes(layouts)
     summary = ["bed (any)", "rooms with a bed %", "objects"]
     first = next(iter(rows.values()))
     classes = sorted({c for row in rows.values() for c, v in row.items() if c not in summary and v >= args.min},
@@ -48,6 +66,11 @@ def main(argv=None) -> int:
     for c in classes + summary:
         fmt = "{:.1f}" if c.endswith("%") else "{:.2f}"
         print(f"| {c} | " + " | ".join(fmt.format(row.get(c, 0.0)) for row in rows.values()) + " |")
+    if args.sizes is not None:
+        print("\n| footprint m^2 / top m (medians) | " + " | ".join(rows) + " |\n|---|" + "---|" * len(rows))
+        for c in [c for c in classes if first.get(c, 0.0) >= args.sizes]:
+            print(f"| {c} | " + " | ".join("{:.2f} / {:.2f}".format(*size[c]) if c in size else "–"
+                                          for size in sizes.values()) + " |")
     return 0
 
 

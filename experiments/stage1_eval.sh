@@ -23,4 +23,4 @@ for k in ("Col_obj", "Col_scene", "R_out", "R_reach", "R_walkable"):
 print(f"| class KL to the prior's samples | – | {s['KL_class']:.4f} | |")
 PY
 # what the adapter added or removed, class by class (beds are the class most at risk)
-$PY benchmarks/class_counts.py "prior=$OUT/base.json" "stage 1=$OUT/stage1.json"
+$PY benchmarks/class_counts.py "prior=$OUT/base.json" "stage 1=$OUT/stage1.json" --sizes 0.1

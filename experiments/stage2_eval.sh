@@ -53,4 +53,4 @@ PY
 # what each stage added or removed, class by class (a task can be passed by emptying the room)
 COUNTS=("prior=$OUT/prior.json" "stage 1=$OUT/stage1.json" "stage 2=$OUT/stage2.json")
 [ -f "$OUT/real_subset.json" ] && COUNTS+=("real (satisfying)=$OUT/real_subset.json")
-$PY benchmarks/class_counts.py "${COUNTS[@]}"
+$PY benchmarks/class_counts.py "${COUNTS[@]}" --sizes 0.1
