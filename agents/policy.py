@@ -36,18 +36,20 @@ from iarcs_env.schedule import gaussian_log_prob
 from .denoiser import ScenePrior
 
 LORA_TARGETS = ["q_proj", "k_proj", "v_proj", "out_proj"]
-FEATURE_GROUPS = {"translation": slice(0, 3), "size": slice(3, 6), "yaw": slice(6, 8), "class": slice(8, None)}
-"""The slot features (iarcs_env.scene) an adapter can adapt, by group."""
+FEATURE_GROUPS = {"translation": [0, 1, 2], "footprint": [3, 5], "height": [4], "yaw": [6, 7], "class": slice(8, None)}
+"""The slot features (iarcs_env.scene: translation xyz, half size xyz, cos/sin yaw, class) an adapter can adapt,
+by group; ``size`` names footprint and height together."""
 ADAPTED_FILE = "iarcs_adapted.json"
 """Written beside peft's files: the feature groups the adapter adapts (absent: all of them)."""
 
 
 def check_feature_groups(groups) -> tuple[str, ...]:
     """The adapted feature groups in canonical order; every group when ``groups`` is empty."""
-    groups = list(groups or FEATURE_GROUPS)
+    groups = [part for g in (groups or FEATURE_GROUPS) for part in (("footprint", "height") if g == "size" else (g,))]
     unknown = sorted(set(groups) - set(FEATURE_GROUPS))
     if unknown:
-        raise ValueError(f"unknown feature group(s) {', '.join(unknown)}; choose from {', '.join(FEATURE_GROUPS)}")
+        raise ValueError(f"unknown feature group(s) {', '.join(unknown)}; choose from {', '.join(FEATURE_GROUPS)} "
+                         "(or size = footprint and height)")
     return tuple(g for g in FEATURE_GROUPS if g in groups)
 
 

@@ -240,6 +240,8 @@ def test_a_placement_adapter_moves_objects_but_keeps_the_priors_classes_and_size
     assert torch.equal(a.labels, b.labels) and torch.allclose(a.translations, b.translations)
     other.add_adapter("task", init_from=other.adapter)
     assert other.adapted["task"] == ("translation", "yaw")
+    assert DiffusionPolicy(tiny_prior(), num_steps=STEPS, adapted=["size", "yaw"]).adapted["stage1"] == \
+        ("footprint", "height", "yaw")
     with pytest.raises(ValueError, match="unknown feature group.*colour.*choose from translation"):
         DiffusionPolicy(tiny_prior(), num_steps=STEPS, adapted=["colour"])
 
