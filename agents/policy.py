@@ -14,7 +14,7 @@ keeps the prior's eps on every feature. An unused slot is class ``empty`` *and* 
 rule an adapter of translation and yaw alone still removes objects by pulling their geometry to 0 (a stage-1
 run did: 3.7 -> 3.3 objects per room) or could fill empty slots. So an adapter of ``("translation", "yaw")``
 moves and turns objects but does not add, remove or resize them. ``experiments/task_reach_1m.yaml`` adapts
-translation, size and yaw: it lowers the beds instead of deleting them (docs/results/stage2_tasks.md).
+translation, height and yaw: it lowers the beds instead of deleting them (docs/results/stage2_tasks.md).
 """
 
 from __future__ import annotations
