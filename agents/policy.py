@@ -14,7 +14,8 @@ keeps the prior's eps on every feature. An unused slot is class ``empty`` *and* 
 rule an adapter of translation and yaw alone still removes objects by pulling their geometry to 0 (a stage-1
 run did: 3.7 -> 3.3 objects per room) or could fill empty slots. So an adapter of ``("translation", "yaw")``
 moves and turns objects but does not add, remove or resize them. ``experiments/task_reach_1m.yaml`` adapts
-translation, height and yaw: it lowers the beds instead of deleting them (docs/results/stage2_tasks.md).
+position, height and yaw: it lowers the beds instead of deleting them, and cannot sink them into the floor
+(an adapter of elevation did: docs/results/stage2_tasks.md).
 """
 
 from __future__ import annotations
@@ -36,20 +37,23 @@ from iarcs_env.schedule import gaussian_log_prob
 from .denoiser import ScenePrior
 
 LORA_TARGETS = ["q_proj", "k_proj", "v_proj", "out_proj"]
-FEATURE_GROUPS = {"translation": [0, 1, 2], "footprint": [3, 5], "height": [4], "yaw": [6, 7], "class": slice(8, None)}
+FEATURE_GROUPS = {"position": [0, 2], "elevation": [1], "footprint": [3, 5], "height": [4], "yaw": [6, 7],
+                  "class": slice(8, None)}
 """The slot features (iarcs_env.scene: translation xyz, half size xyz, cos/sin yaw, class) an adapter can adapt,
-by group; ``size`` names footprint and height together."""
+by group: position on the floor (x, z), elevation (y, the centre's height), footprint, height, yaw, class.
+``translation`` names position and elevation, ``size`` footprint and height."""
+ALIASES = {"translation": ("position", "elevation"), "size": ("footprint", "height")}
 ADAPTED_FILE = "iarcs_adapted.json"
 """Written beside peft's files: the feature groups the adapter adapts (absent: all of them)."""
 
 
 def check_feature_groups(groups) -> tuple[str, ...]:
     """The adapted feature groups in canonical order; every group when ``groups`` is empty."""
-    groups = [part for g in (groups or FEATURE_GROUPS) for part in (("footprint", "height") if g == "size" else (g,))]
+    groups = [part for g in (groups or FEATURE_GROUPS) for part in ALIASES.get(g, (g,))]
     unknown = sorted(set(groups) - set(FEATURE_GROUPS))
     if unknown:
         raise ValueError(f"unknown feature group(s) {', '.join(unknown)}; choose from {', '.join(FEATURE_GROUPS)} "
-                         "(or size = footprint and height)")
+                         "(or translation = position and elevation, size = footprint and height)")
     return tuple(g for g in FEATURE_GROUPS if g in groups)
 
 

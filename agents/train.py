@@ -38,8 +38,9 @@ class TrainConfig:
     init_adapter: str = ""
     """Optional adapter folder (peft format) to start from; ``default``: the shipped stage-1 adapter."""
     adapt: list = field(default_factory=list)
-    """Feature groups the adapter adapts (agents.policy.FEATURE_GROUPS: translation, footprint, height, yaw,
-    class; size = footprint and height); the others keep the prior's prediction. Empty: all of them, or with ``init_adapter`` the same as that adapter.
+    """Feature groups the adapter adapts (agents.policy.FEATURE_GROUPS: position, elevation, footprint, height,
+    yaw, class; translation = position and elevation, size = footprint and height); the others keep the
+    prior's prediction. Empty: all of them, or with ``init_adapter`` the same as that adapter.
     ``[translation, yaw]`` moves and turns objects but keeps which objects a room has and their sizes."""
     algorithm: str = "ddpo"
     """ddpo (= ddpo-is) or ddpo-sf."""

@@ -7,7 +7,8 @@ Each argument is ``NAME=FILE`` (or a file, named by its stem): a neutral-JSON sc
 Rows: every class with at least ``--min`` objects per room in some file, then beds of any kind per room,
 the share of rooms with a bed, and objects per room. ``--sizes`` adds a second table: the median footprint
 (m^2) and top height (m) of each class with at least ``--sizes`` objects per room in the first file, to
-show an adapter that changes sizes (a stage-2 run that lowers the beds).
+show an adapter that changes sizes (a stage-2 run that lowers the beds), and the median bottom height (m):
+furniture stands on the floor (0), so a bottom far from 0 is an object floating or sunk into the floor.
 """
 
 from __future__ import annotations
@@ -34,14 +35,13 @@ def class_counts(layouts) -> dict[str, float]:
     return row
 
 
-def class_sizes(layouts) -> dict[str, tuple[float, float]]:
-    """Per class: (median footprint area in m^2, median top height in m) over its objects."""
-    areas, tops = {}, {}
+def class_sizes(layouts) -> dict[str, tuple[float, float, float]]:
+    """Per class: medians over its objects of (footprint area m^2, bottom height m, top height m)."""
+    values = {}
     for lay in layouts:
         for label, t, h in zip(lay.labels, lay.translations, lay.half_sizes):
-            areas.setdefault(label, []).append(4 * h[0] * h[2])
-            tops.setdefault(label, []).append(t[1] + h[1])
-    return {c: (statistics.median(areas[c]), statistics.median(tops[c])) for c in areas}
+            values.setdefault(label, []).append((4 * h[0] * h[2], t[1] - h[1], t[1] + h[1]))
+    return {c: tuple(statistics.median(column) for column in zip(*v)) for c, v in values.items()}
 
 
 def main(argv=None) -> int:
@@ -67,9 +67,9 @@ def main(argv=None) -> int:
         fmt = "{:.1f}" if c.endswith("%") else "{:.2f}"
         print(f"| {c} | " + " | ".join(fmt.format(row.get(c, 0.0)) for row in rows.values()) + " |")
     if args.sizes is not None:
-        print("\n| footprint m^2 / top m (medians) | " + " | ".join(rows) + " |\n|---|" + "---|" * len(rows))
+        print("\n| footprint m^2 / bottom m / top m (medians) | " + " | ".join(rows) + " |\n|---|" + "---|" * len(rows))
         for c in [c for c in classes if first.get(c, 0.0) >= args.sizes]:
-            print(f"| {c} | " + " | ".join("{:.2f} / {:.2f}".format(*size[c]) if c in size else "–"
+            print(f"| {c} | " + " | ".join("{:.2f} / {:.2f} / {:.2f}".format(*size[c]) if c in size else "–"
                                           for size in sizes.values()) + " |")
     return 0
 

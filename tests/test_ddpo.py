@@ -233,15 +233,15 @@ def test_a_placement_adapter_moves_objects_but_keeps_the_priors_classes_and_size
     folder = policy.save_adapter(tmp_path / "adapters")
     other = DiffusionPolicy(tiny_prior(), num_steps=STEPS, adapter="scratch")
     other.load_adapter(folder)
-    assert other.adapted[other.adapter] == ("translation", "yaw")
+    assert other.adapted[other.adapter] == ("position", "elevation", "yaw")
     assert torch.equal(other.prior_features(), policy.prior_features())
     g = lambda: torch.Generator().manual_seed(9)  # noqa: E731
     a, b = policy.sample(FLOORS, generator=g()), other.sample(FLOORS, generator=g())
     assert torch.equal(a.labels, b.labels) and torch.allclose(a.translations, b.translations)
     other.add_adapter("task", init_from=other.adapter)
-    assert other.adapted["task"] == ("translation", "yaw")
-    assert DiffusionPolicy(tiny_prior(), num_steps=STEPS, adapted=["size", "yaw"]).adapted["stage1"] == \
-        ("footprint", "height", "yaw")
-    with pytest.raises(ValueError, match="unknown feature group.*colour.*choose from translation"):
+    assert other.adapted["task"] == ("position", "elevation", "yaw")
+    assert DiffusionPolicy(tiny_prior(), num_steps=STEPS, adapted=["size", "yaw", "position"]).adapted["stage1"] == \
+        ("position", "footprint", "height", "yaw")
+    with pytest.raises(ValueError, match="unknown feature group.*colour.*choose from position"):
         DiffusionPolicy(tiny_prior(), num_steps=STEPS, adapted=["colour"])
 

@@ -211,8 +211,11 @@ def test_class_counts_per_room_and_rooms_with_a_bed(tmp_path, capsys):
     lines = capsys.readouterr().out.splitlines()
     assert lines[0] == "| per room | before | b |"
     assert "| double_bed | 0.25 | 0.00 |" in lines and "| rooms with a bed % | 50.0 | 0.0 |" in lines
-    # sizes: the double bed is 2 x 2 m and 0.8 m high; nightstands 0.5 x 0.5 m
-    assert script.class_sizes(rooms)["double_bed"] == pytest.approx((4.0, 0.8))
+    # sizes: the double bed is 2 x 2 m and 0.8 m high on the floor; nightstands 0.5 x 0.5 m; one floats 0.3 m up
+    assert script.class_sizes(rooms)["double_bed"] == pytest.approx((4.0, 0.0, 0.8))
+    floating = make_layout([box("nightstand", 2.8, 1.5, 0.25, 0.25, y0=0.3)] * 3)
+    assert script.class_sizes([floating])["nightstand"] == pytest.approx((0.25, 0.3, 1.1))
     assert script.main([f"before={tmp_path / 'a.json'}", str(tmp_path / "b.json"), "--sizes", "0.2"]) == 0
     lines = capsys.readouterr().out.splitlines()
-    assert "| double_bed | 4.00 / 0.80 | – |" in lines and "| nightstand | 0.25 / 0.80 | 0.25 / 0.80 |" in lines
+    assert "| double_bed | 4.00 / 0.00 / 0.80 | – |" in lines
+    assert "| nightstand | 0.25 / 0.00 / 0.80 | 0.25 / 0.00 / 0.80 |" in lines
