@@ -7,13 +7,13 @@ parameters theta. Each task gets its own named adapter, saved and loaded in peft
 (``adapter_config.json`` + ``adapter_model.safetensors``). The log-probability is the MEAN of per-element
 Gaussian log-densities over a scene (DESIGN.md), shared with :mod:`iarcs_env.schedule`.
 
-An adapter may adapt only some feature groups of a slot (``adapted``; e.g. ``("translation", "yaw")``): the
+An adapter may adapt only some feature groups of a slot (``adapted``; e.g. ``("position", "yaw")``): the
 others keep the prior's prediction, eps = where(adapted, eps_theta, eps_prior). Without ``class``, the prior
 also decides which slots hold objects: a slot whose class the prior predicts (from x0_hat) to be ``empty``
 keeps the prior's eps on every feature. An unused slot is class ``empty`` *and* geometry 0, so without this
 rule an adapter of translation and yaw alone still removes objects by pulling their geometry to 0 (a stage-1
-run did: 3.7 -> 3.3 objects per room) or could fill empty slots. So an adapter of ``("translation", "yaw")``
-moves and turns objects but does not add, remove or resize them. ``experiments/task_reach_1m.yaml`` adapts
+run did: 3.7 -> 3.3 objects per room) or could fill empty slots. So an adapter of ``("position", "yaw")``
+moves and turns objects on the floor but does not add, remove, resize, lift or sink them. ``experiments/task_reach_1m.yaml`` adapts
 position, height and yaw: it lowers the beds instead of deleting them, and cannot sink them into the floor
 (an adapter of elevation did: docs/results/stage2_tasks.md).
 """

@@ -41,7 +41,7 @@ class TrainConfig:
     """Feature groups the adapter adapts (agents.policy.FEATURE_GROUPS: position, elevation, footprint, height,
     yaw, class; translation = position and elevation, size = footprint and height); the others keep the
     prior's prediction. Empty: all of them, or with ``init_adapter`` the same as that adapter.
-    ``[translation, yaw]`` moves and turns objects but keeps which objects a room has and their sizes."""
+    ``[position, yaw]`` moves and turns objects on the floor but keeps which objects a room has and their sizes."""
     algorithm: str = "ddpo"
     """ddpo (= ddpo-is) or ddpo-sf."""
     num_envs: int = 32
