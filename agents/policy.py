@@ -13,9 +13,10 @@ also decides which slots hold objects: a slot whose class the prior predicts (fr
 keeps the prior's eps on every feature. An unused slot is class ``empty`` *and* geometry 0, so without this
 rule an adapter of translation and yaw alone still removes objects by pulling their geometry to 0 (a stage-1
 run did: 3.7 -> 3.3 objects per room) or could fill empty slots. So an adapter of ``("position", "yaw")``
-moves and turns objects on the floor but does not add, remove, resize, lift or sink them. ``experiments/task_reach_1m.yaml`` adapts
-position, height and yaw: it lowers the beds instead of deleting them, and cannot sink them into the floor
-(an adapter of elevation did: docs/results/stage2_tasks.md).
+moves and turns objects on the floor but does not add, remove, resize, lift or sink them.
+``experiments/task_reach_1m.yaml`` adapts position, height and yaw: it lowers the beds instead of deleting
+them, and leaves their elevation to the prior (an adapter of elevation sank them into the floor:
+docs/results/stage2_tasks.md).
 """
 
 from __future__ import annotations
