@@ -5,10 +5,11 @@
 
 Each argument is ``NAME=FILE`` (or a file, named by its stem): a neutral-JSON scene file of one room type.
 Rows: every class with at least ``--min`` objects per room in some file, then beds of any kind per room,
-the share of rooms with a bed, and objects per room. ``--sizes`` adds a second table: the median footprint
-(m^2) and top height (m) of each class with at least ``--sizes`` objects per room in the first file, to
-show an adapter that changes sizes (a stage-2 run that lowers the beds), and the median bottom height (m):
-furniture stands on the floor (0), so a bottom far from 0 is an object floating or sunk into the floor.
+the share of rooms with a bed, and objects per room. ``--sizes MIN`` adds a second table, for each class
+with at least MIN objects per room in the first file: the median footprint (m^2), bottom height (m) and
+top height (m). It shows an adapter that changes sizes (a stage-2 run that lowers the beds), and one that
+moves furniture off the floor: furniture stands on it (bottom 0), so a bottom far from 0 is an object
+floating or sunk into the floor.
 """
 
 from __future__ import annotations
@@ -49,8 +50,8 @@ def main(argv=None) -> int:
     p.add_argument("files", nargs="+", help="NAME=FILE or FILE (neutral-JSON scenes)")
     p.add_argument("--min", type=float, default=0.02, help="smallest objects per room of a class to list")
     p.add_argument("--sizes", type=float, default=None, metavar="MIN",
-                   help="also list median footprints and top heights of the classes with at least MIN objects "
-                        "per room in the first file")
+                   help="also list median footprints, bottom and top heights of the classes with at least MIN "
+                        "objects per room in the first file")
     args = p.parse_args(argv)
     rows, sizes = {}, {}
     for item in args.files:

@@ -209,8 +209,8 @@ def test_a_kill_during_save_leaves_a_loadable_checkpoint(tmp_path):
 
 def test_a_placement_adapter_moves_objects_but_keeps_the_priors_classes_and_sizes(tmp_path):
     """adapt=[translation, yaw]: after training, the policy's Gaussian equals the prior's on the size and
-    class features and on the slots the prior leaves empty, and differs on the objects' translation and yaw; the choice survives save/load and is
-    inherited by an adapter initialised from it."""
+    class features and on the slots the prior leaves empty, and differs on the objects' translation and yaw;
+    the choice survives save/load and is inherited by an adapter initialised from it."""
     policy = DiffusionPolicy(tiny_prior(), num_steps=STEPS, adapted=["yaw", "translation"])
     params = {"learning_rate": 1e-2, "minibatch_size": 4, "clip_range": 0.2, "samples_per_floor": 4}
     model = DDPO(policy, make_env(), verbose=0, **params)
@@ -244,4 +244,3 @@ def test_a_placement_adapter_moves_objects_but_keeps_the_priors_classes_and_size
         ("position", "footprint", "height", "yaw")
     with pytest.raises(ValueError, match="unknown feature group.*colour.*choose from position"):
         DiffusionPolicy(tiny_prior(), num_steps=STEPS, adapted=["colour"])
-

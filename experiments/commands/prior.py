@@ -74,18 +74,18 @@ def cmd_sample(args) -> int:
     if args.eta < 0:
         raise CLIError(f"--eta must be >= 0, got {args.eta}")
 
-    eps_fn = None  # with an adapter: the policy's eps (the prior's on the features the adapter leaves to it)
+    policy = None  # with an adapter: sample through the policy's eps (the prior's on the features it leaves)
     if args.checkpoint and (Path(args.checkpoint) / "adapter_config.json").exists():
         from agents.policy import DiffusionPolicy
 
         policy = DiffusionPolicy(ScenePrior.load_default(spec.name), adapter="scratch")
-        policy.load_adapter(args.checkpoint, "sampled")
-        prior, eps_fn = policy.prior, policy.eps  # the shipped prior with this LoRA adapter (peft folder) active
+        policy.load_adapter(args.checkpoint, "sampled")  # the shipped prior with this LoRA adapter (peft folder)
     elif args.checkpoint and Path(args.checkpoint).is_dir():
         from agents.train import load_trained_policy
 
-        policy, _ = load_trained_policy(args.checkpoint)
-        prior, eps_fn = policy.prior, policy.eps  # its denoiser carries the run's LoRA adapter, active
+        policy, _ = load_trained_policy(args.checkpoint)  # a run folder: its prior with its adapter
+    if policy is not None:
+        prior = policy.prior
     elif args.checkpoint:
         prior = ScenePrior.load(args.checkpoint)
     else:
@@ -116,7 +116,7 @@ def cmd_sample(args) -> int:
            for i, r in enumerate(sources)]
     gen = torch.Generator().manual_seed(args.seed)
     batch = prior.sample(floors, num_steps=args.steps, eta=args.eta, generator=gen, guidance_scale=args.guidance,
-                         batch_size=args.batch_size, ids=ids, eps_fn=eps_fn)
+                         batch_size=args.batch_size, ids=ids, eps_fn=policy.eps if policy else None)
     layouts = []
     for lay, src in zip(batch.to_layouts(), sources):
         # back to the floor plan's own frame (the prior works centred on the floor's bounding box)
