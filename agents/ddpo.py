@@ -305,7 +305,7 @@ class DDPO:
         scenes = self.policy.sample(floors, generator=torch.Generator().manual_seed(seed))
         layouts = scenes.to_layouts()
         metrics = {k: float(v) for k, v in evaluate_layouts(layouts).items()
-                   if k in ("Col_obj", "Col_scene", "R_out", "R_reach", "R_walkable")}
+                   if k in ("Col_obj", "Col_scene", "R_out", "R_reach", "R_walkable", "R_off_floor")}
         total, terms = evaluate_reward(self.venv.reward_fn, scenes)
         metrics["reward"] = float(total.mean())
         metrics.update({name: float(fn(scenes)) for name, fn in (scene_metrics or {}).items()})

@@ -40,15 +40,16 @@ $PY - "$OUT" "$TASK" <<'PY'
 import json, os, sys
 out, task = sys.argv[1:]
 rows = [(n, f"{out}/{n}_report.json") for n in ("real_subset", "prior", "stage1", "stage2")]
-print(f"| {task} | success % | Col_obj % | Col_scene % | R_out % | R_reach % | R_walkable | SCA % |")
-print("|---|---|---|---|---|---|---|---|")
+print(f"| {task} | success % | Col_obj % | Col_scene % | R_out % | R_reach % | R_walkable | R_off_floor % | SCA % |")
+print("|---|---|---|---|---|---|---|---|---|")
 for name, path in rows:
     if not os.path.exists(path):
         continue
     r = json.load(open(path))
     sca = f"{100 * r['SCA']:.1f}" if "SCA" in r else "–"
     print(f"| {name} | {100 * r['task_success_' + task]:.1f} | {100 * r['Col_obj']:.2f} | {100 * r['Col_scene']:.2f} | "
-          f"{100 * r['R_out']:.2f} | {100 * r['R_reach']:.2f} | {r['R_walkable']:.3f} | {sca} |")
+          f"{100 * r['R_out']:.2f} | {100 * r['R_reach']:.2f} | {r['R_walkable']:.3f} | "
+          f"{100 * r.get('R_off_floor', float('nan')):.2f} | {sca} |")
 PY
 # what each stage added or removed, class by class (a task can be passed by emptying the room)
 COUNTS=("prior=$OUT/prior.json" "stage 1=$OUT/stage1.json" "stage 2=$OUT/stage2.json")

@@ -54,8 +54,18 @@ OUT_OF_BOUND_SHRINK = 0.05
 #: Walkable grid defaults: cell size and agent radius (m).
 WALK_CELL = 0.05
 AGENT_RADIUS = 0.3
+#: Floor contact (our addition): a ground object stands on the floor when its bottom is within this of y = 0 (m).
+FLOOR_CONTACT_TOL = 0.05
 
 _BIG = 1e9
+
+
+def floor_gaps(translations: torch.Tensor, half_sizes: torch.Tensor, ground: torch.Tensor) -> torch.Tensor:
+    """(B, N) distance (m) of each ground object's bottom from the floor (y = 0), above or below it; 0 for
+    the other slots. Every ground object of the real 3D-FRONT bedrooms stands on the floor (bottoms within
+    0.09 m of it, 99.9% within 0.03 m)."""
+    bottoms = translations[..., 1] - half_sizes[..., 1]
+    return torch.where(ground, bottoms.abs(), torch.zeros_like(bottoms))
 
 
 @contextmanager

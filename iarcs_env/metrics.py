@@ -17,6 +17,10 @@ Definitions (DESIGN.md, "Metric definitions"; used exactly):
   take the largest.)
 * ``R_reach`` = ground objects whose inflated footprint touches, within one cell (8-neighbourhood), the
   largest free component / ground objects (pooled). A scene with no free cell has no reachable object.
+* ``R_off_floor`` (our addition; not in DESIGN.md): ground objects whose bottom is more than 0.05 m above or
+  below the floor / ground objects (pooled). Every ground object of the real 3D-FRONT rooms stands on the
+  floor, and nothing else asks for it: an RL adapter that may move objects vertically sinks beds into the
+  floor to pass a height limit, or lifts furniture to avoid collisions.
 * Set-level statistics against a reference set: ``KL_class`` = KL(reference || generated) of the class
   frequencies (per object, smoothed with 1e-6); ``count_distance`` = earth mover's (1-Wasserstein)
   distance between the object-count histograms, in objects; plus both mean counts.
@@ -53,6 +57,7 @@ class SceneResult:
     n_ground: int
     colliding: list[int]
     out_of_bound: list[int]
+    off_floor: list[int]
     unreachable_objects: list[int]
     walkable: float
     free_cells: int
@@ -63,7 +68,7 @@ class SceneResult:
 
     @property
     def has_issue(self) -> bool:
-        return bool(self.colliding or self.out_of_bound or self.unreachable_objects)
+        return bool(self.colliding or self.out_of_bound or self.off_floor or self.unreachable_objects)
 
     def overlays(self) -> Overlays:
         """Overlays for :func:`iarcs_env.render.render_layout` of the scene's centred layout."""
@@ -78,6 +83,7 @@ class BatchResult:
     ground: np.ndarray
     colliding: np.ndarray
     out_of_bound: np.ndarray
+    off_floor: np.ndarray
     reachable: np.ndarray
     walkable: np.ndarray  # (B,)
     free_cells: np.ndarray
@@ -99,10 +105,12 @@ def evaluate_batch(batch: SceneBatch, cell: float = geo.WALK_CELL, agent_radius:
     out_area = geo.box_out_of_floor_area(batch.translations, batch.half_sizes, batch.yaws, batch.floors, mask,
                                          shrink=geo.OUT_OF_BOUND_SHRINK)
     out = (out_area > geo.OUT_OF_BOUND_AREA) & mask
+    off_floor = geo.floor_gaps(batch.translations, batch.half_sizes, ground) > geo.FLOOR_CONTACT_TOL
     space = geo.free_space(batch.floors, batch.translations, batch.half_sizes, batch.yaws, ground,
                            cell=cell, radius=agent_radius, reach=True)
     m, g = mask.cpu().numpy(), ground.cpu().numpy()
-    res = BatchResult(m, g, colliding.cpu().numpy(), out.cpu().numpy(), space.reach & g, space.walkable_ratio,
+    res = BatchResult(m, g, colliding.cpu().numpy(), out.cpu().numpy(), off_floor.cpu().numpy(),
+                      space.reach & g, space.walkable_ratio,
                       space.free_cells, space.largest_cells, overlap.cpu().numpy(), out_area.cpu().numpy(), space)
     for b in range(batch.batch_size):
         slots = np.nonzero(m[b])[0]  # slot -> object index (empty slots dropped)
@@ -116,6 +124,7 @@ def evaluate_batch(batch: SceneBatch, cell: float = geo.WALK_CELL, agent_radius:
             n_objects=int(m[b].sum()), n_ground=int(g[b].sum()),
             colliding=[idx[int(s)] for s in np.nonzero(res.colliding[b])[0]],
             out_of_bound=[idx[int(s)] for s in np.nonzero(res.out_of_bound[b])[0]],
+            off_floor=[idx[int(s)] for s in np.nonzero(res.off_floor[b])[0]],
             unreachable_objects=[idx[int(s)] for s in np.nonzero(g[b] & ~res.reachable[b])[0]],
             walkable=float(res.walkable[b]), free_cells=int(res.free_cells[b]),
             largest_cells=int(res.largest_cells[b]),
@@ -203,8 +212,8 @@ def evaluate_layouts(layouts: Sequence[Layout], reference: Sequence[Layout] | No
                      features: str | None = None, distribution_kwargs: dict | None = None) -> dict:
     """Evaluate layouts with the DESIGN.md metrics.
 
-    Returns a dict with ``Col_obj``, ``Col_scene``, ``R_out``, ``R_reach``, ``R_walkable`` (fractions in
-    [0, 1]) plus counts (``n_scenes``, ``n_objects``, ``n_ground_objects``), ``mean_objects``, and
+    Returns a dict with ``Col_obj``, ``Col_scene``, ``R_out``, ``R_reach``, ``R_walkable`` and
+    ``R_off_floor`` (fractions in [0, 1]) plus counts (``n_scenes``, ``n_objects``, ``n_ground_objects``), ``mean_objects``, and
     the grid settings. With a ``reference`` set: ``KL_class``, ``count_distance``,
     ``reference_mean_objects``; with ``features`` too (``"cnn"`` or ``"clip:PATH"``, see
     :mod:`iarcs_env.distribution`): ``FID``, ``KID``, ``SCA`` and ``feature_extractor``. With
@@ -212,7 +221,7 @@ def evaluate_layouts(layouts: Sequence[Layout], reference: Sequence[Layout] | No
     masks, in each layout's centred frame).
     """
     layouts = one_room_type(layouts)
-    totals = dict(objects=0, ground=0, colliding=0, scenes_colliding=0, out=0, reachable=0)
+    totals = dict(objects=0, ground=0, colliding=0, scenes_colliding=0, out=0, off_floor=0, reachable=0)
     walkable, scenes = [], []
     bar = None
     if progress:
@@ -226,6 +235,7 @@ def evaluate_layouts(layouts: Sequence[Layout], reference: Sequence[Layout] | No
         totals["colliding"] += int(r.colliding.sum())
         totals["scenes_colliding"] += int(r.colliding.any(1).sum())
         totals["out"] += int(r.out_of_bound.sum())
+        totals["off_floor"] += int(r.off_floor.sum())
         totals["reachable"] += int(r.reachable.sum())
         walkable.append(r.walkable)
         if keep_scenes:
@@ -242,6 +252,7 @@ def evaluate_layouts(layouts: Sequence[Layout], reference: Sequence[Layout] | No
         "R_out": totals["out"] / max(totals["objects"], 1),
         "R_reach": totals["reachable"] / ground if totals["ground"] else 1.0,
         "R_walkable": float(np.concatenate(walkable).mean()),
+        "R_off_floor": totals["off_floor"] / ground,
         "n_scenes": n,
         "n_objects": totals["objects"],
         "n_ground_objects": totals["ground"],

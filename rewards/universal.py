@@ -13,6 +13,10 @@ batch's device. They are registered by name in :data:`REWARDS` (add your own wit
   4-connected region / free cells of the same room with no furniture (1 for an empty room), ``regions`` =
   number of free regions, ``clearance`` = mean distance (m) from a free cell to the nearest blocked cell
   (Euclidean distance transform).
+* ``floor_contact`` (our addition): +``bonus`` (1) when every ground object's bottom is within ``tolerance``
+  (0.05 m, the R_off_floor metric's) of the floor, otherwise minus the total distance (m) beyond it of those
+  that are not, sunk or lifted. Without it an adapter that may change an object's elevation passes a height
+  limit by sinking beds into the floor, and dodges collisions by lifting furniture.
 * ``object_count`` (Alg. 4): ``mode="kl"`` (default): minus KL(batch || training) between the batch's
   object-count histogram and the training set's (``DatasetStats.count_distribution``), both smoothed
   with ``eps``; the same value for every scene of the batch (it rewards the batch as a whole, which keeps
@@ -119,6 +123,14 @@ def accessibility_reward(batch: SceneBatch, cell: float = 0.1, agent_radius: flo
     coverage = np.where(space.floor_cells > 0, space.largest_cells / np.maximum(space.floor_cells, 1), 0.0)
     clearance = np.nan_to_num(space.clearance) if w_clearance else 0.0
     return _out(w_coverage * coverage - w_regions * space.regions + w_clearance * clearance, batch)
+
+
+@register_reward("floor_contact")
+def floor_contact_reward(batch: SceneBatch, tolerance: float = geo.FLOOR_CONTACT_TOL, bonus: float = 1.0) -> torch.Tensor:
+    """+``bonus`` when every ground object stands on the floor, else minus the total gap beyond ``tolerance`` (m)."""
+    excess = (geo.floor_gaps(batch.translations, batch.half_sizes, batch.ground_mask) - tolerance).clamp(min=0)
+    total = excess.sum(1)
+    return _out(torch.where(total > 0, -total, torch.full_like(total, bonus)), batch)
 
 
 def _count_distribution(stats: DatasetStats | None, distribution, n: int) -> np.ndarray:

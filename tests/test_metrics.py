@@ -86,6 +86,20 @@ def test_flush_against_the_wall_is_not_out_of_bound_thanks_to_the_shrink():
     assert r.out_of_bound[0, 0] and r.out_area[0, 0] == pytest.approx(0.10 * 0.5, abs=1e-12)
 
 
+# --- floor contact -----------------------------------------------------------------------------------
+def test_sunk_and_lifted_furniture_is_off_the_floor_but_lamps_and_small_gaps_are_not():
+    objects = [box("double_bed", 1.0, 1.5, 0.9, 1.0, y0=-0.15),   # sunk 0.15 m into the floor
+               box("nightstand", 2.4, 0.5, 0.25, 0.25, y0=0.3),   # lifted 0.3 m
+               box("wardrobe", 3.4, 2.5, 0.5, 0.3, y0=0.04),      # 4 cm: within the 5 cm tolerance
+               box("cabinet", 3.4, 1.2, 0.3, 0.3),                # on the floor
+               ("pendant_lamp", (2.0, 1.8, 1.5), (0.2, 0.2, 0.2), 0.0)]  # hangs: not a ground object
+    r = run(make_layout(objects))
+    assert r.off_floor[0].tolist() == [True, True, False, False, False]
+    out = evaluate_layouts([make_layout(objects)], keep_scenes=True)
+    assert out["R_off_floor"] == pytest.approx(2 / 4)
+    assert out["scenes"][0].off_floor == [0, 1] and out["scenes"][0].has_issue
+
+
 # --- walkability and reachability ---------------------------------------------------------------------
 def test_a_wardrobe_splitting_the_room_gives_the_known_walkable_ratio_and_reach():
     # room 4 x 3; a wardrobe wall-to-wall at x = 1.4..1.6; free x: 0.3..1.1 (left) and 1.9..3.7 (right)
@@ -179,6 +193,7 @@ def test_real_bedrooms_land_on_the_reference_figures():
     assert out["R_out"] == pytest.approx(0.073, abs=0.02)
     assert out["R_reach"] == pytest.approx(0.786, abs=0.02)
     assert out["R_walkable"] == pytest.approx(0.915, abs=0.02)
+    assert out["R_off_floor"] < 0.002  # every real ground object stands on the floor (one nightstand 9 cm below)
 
 
 def test_eval_prior_lists_the_colliding_class_pairs_with_their_overlap():

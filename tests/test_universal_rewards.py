@@ -12,7 +12,8 @@ from iarcs_env.metrics import batch_float64
 from iarcs_env.scene import SceneBatch
 from iarcs_env.stats import DatasetStats
 from rewards import (REWARDS, CompositeReward, accessibility_reward, boundary_reward, class_frequency_reward,
-                     class_presence_reward, collision_reward, object_count_reward, register_reward)
+                     class_presence_reward, collision_reward, floor_contact_reward, object_count_reward,
+                     register_reward)
 from scene_factory import L_SHAPE, box, make_layout, random_layouts
 
 
@@ -45,6 +46,18 @@ def test_boundary_reward_is_two_inside_and_minus_the_out_area_otherwise():
     assert r[1].item() == pytest.approx(-(0.9 * 0.45 + 0.45 * 0.45), rel=1e-5)
     r0 = boundary_reward(batch(through), shrink=0.0)  # the raw footprints
     assert r0[0].item() == pytest.approx(-(1.0 * 0.5 + 0.25), rel=1e-5)
+
+
+def test_floor_contact_reward_is_one_on_the_floor_and_minus_the_gaps_beyond_the_tolerance_otherwise():
+    standing = make_layout([box("double_bed", 1.0, 1.5, 0.9, 1.0, y0=0.03),
+                            ("ceiling_lamp", (2, 2.4, 1.5), (0.3, 0.1, 0.3), 0.0)])
+    sunk = make_layout([box("double_bed", 1.0, 1.5, 0.9, 1.0, y0=-0.15), box("nightstand", 2.4, 0.5, 0.25, 0.25)])
+    lifted = make_layout([box("double_bed", 1.0, 1.5, 0.9, 1.0, y0=-0.15), box("nightstand", 2.4, 0.5, 0.25, 0.25,
+                                                                                y0=0.35)])
+    r = floor_contact_reward(batch(standing, sunk, lifted))
+    assert r[0].item() == 1.0
+    np.testing.assert_allclose(r[1:].numpy(), [-0.10, -(0.10 + 0.30)], rtol=1e-5)
+    assert "floor_contact" in REWARDS
 
 
 def test_accessibility_reward_prefers_an_open_room_to_a_split_one():
