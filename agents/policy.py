@@ -8,15 +8,16 @@ parameters theta. Each task gets its own named adapter, saved and loaded in peft
 Gaussian log-densities over a scene (DESIGN.md), shared with :mod:`iarcs_env.schedule`.
 
 An adapter may adapt only some feature groups of a slot (``adapted``; e.g. ``("position", "yaw")``): the
-others keep the prior's prediction, eps = where(adapted, eps_theta, eps_prior). Without ``class``, the prior
-also decides which slots hold objects: a slot whose class the prior predicts (from x0_hat) to be ``empty``
-keeps the prior's eps on every feature. An unused slot is class ``empty`` *and* geometry 0, so without this
-rule an adapter of translation and yaw alone still removes objects by pulling their geometry to 0 (a stage-1
-run did: 3.7 -> 3.3 objects per room) or could fill empty slots. So an adapter of ``("position", "yaw")``
-moves and turns objects on the floor but does not add, remove, resize, lift or sink them.
-``experiments/task_reach_1m.yaml`` adapts position, height and yaw: it lowers the beds instead of deleting
-them, and leaves their elevation to the prior (an adapter of elevation sank them into the floor:
-docs/results/stage2_tasks.md).
+others follow its *reference*, eps = where(adapted, eps_theta, eps_ref). The reference is the adapter it was
+initialised from (a stage-2 adapter follows the stage-1 policy it starts from, so it keeps stage 1's
+objects and physical plausibility and changes only what the task needs), or the prior for an adapter made
+from scratch. Without ``class``, the reference also decides which slots hold objects: a slot whose class the
+reference predicts (from x0_hat) to be ``empty`` keeps the reference's eps on every feature. An unused slot
+is class ``empty`` *and* geometry 0, so without this rule an adapter of translation and yaw alone still
+removes objects by pulling their geometry to 0 (a stage-1 run did: 3.7 -> 3.3 objects per room) or could
+fill empty slots. So an adapter of ``("position", "yaw")`` moves and turns objects on the floor but does not
+add, remove, resize, lift or sink them. The reference is saved inside the adapter's folder (``reference/``),
+so a saved adapter samples the same wherever it is loaded.
 """
 
 from __future__ import annotations
@@ -45,7 +46,9 @@ by group: position on the floor (x, z), elevation (y, the centre's height), foot
 ``translation`` names position and elevation, ``size`` footprint and height."""
 ALIASES = {"translation": ("position", "elevation"), "size": ("footprint", "height")}
 ADAPTED_FILE = "iarcs_adapted.json"
-"""Written beside peft's files: the feature groups the adapter adapts (absent: all of them)."""
+"""Written beside peft's files: the feature groups the adapter adapts (absent: all of them) and the name of
+its reference adapter (absent or null: the prior), whose own folder is ``reference/`` beside it."""
+REFERENCE_DIR = "reference"
 
 
 def check_feature_groups(groups) -> tuple[str, ...]:
@@ -98,6 +101,8 @@ class DiffusionPolicy(nn.Module):
         self.model.eval()  # no dropout: sampling and training log-probs must agree
         self.schedule = prior.schedule
         self.adapted: dict[str, tuple[str, ...]] = {adapter: check_feature_groups(adapted)}
+        self.references: dict[str, str | None] = {adapter: None}
+        """adapter -> the adapter its non-adapted features follow (None: the prior)."""
         self._adapters_off = False
 
     # --- adapters ---------------------------------------------------------------------------------------
@@ -107,9 +112,11 @@ class DiffusionPolicy(nn.Module):
 
     def add_adapter(self, name: str, init_from: str | None = None, adapted=()) -> None:
         """A new adapter (zero-initialised B, so the policy starts as the prior), or a copy of ``init_from``.
-        ``adapted``: its feature groups (empty: those of ``init_from``, or all)."""
+        ``adapted``: its feature groups (empty: those of ``init_from``, or all). The features it does not
+        adapt follow ``init_from`` (kept frozen, and saved with it), or the prior."""
         self.model.add_adapter(name, self.lora_config)
         self.adapted[name] = check_feature_groups(adapted or (self.adapted[init_from] if init_from else ()))
+        self.references[name] = init_from if len(self.adapted[name]) < len(FEATURE_GROUPS) else None
         if init_from is not None:
             src = {k: v for k, v in self.model.state_dict().items() if f".{init_from}." in k}
             self.model.load_state_dict({k.replace(f".{init_from}.", f".{name}."): v for k, v in src.items()},
@@ -125,7 +132,10 @@ class DiffusionPolicy(nn.Module):
         name = name or self.adapter
         self.model.save_pretrained(str(folder), selected_adapters=[name])
         path = Path(folder) / name if name != "default" else Path(folder)
-        (path / ADAPTED_FILE).write_text(json.dumps({"adapted": list(self.adapted[name])}))
+        reference = self.references.get(name)
+        if reference is not None:
+            reference = self.save_adapter(path / REFERENCE_DIR, reference).name
+        (path / ADAPTED_FILE).write_text(json.dumps({"adapted": list(self.adapted[name]), "reference": reference}))
         return path
 
     def load_adapter(self, folder: str | Path, name: str | None = None) -> str:
@@ -134,11 +144,15 @@ class DiffusionPolicy(nn.Module):
         if not (folder / "adapter_config.json").exists():
             raise FileNotFoundError(f"no peft adapter in {folder} (adapter_config.json missing)")
         name = name or folder.name
+        meta = json.loads((folder / ADAPTED_FILE).read_text()) if (folder / ADAPTED_FILE).exists() else {}
+        reference = None
+        if meta.get("reference"):
+            reference = self.load_adapter(folder / REFERENCE_DIR / meta["reference"], f"{name}_reference")
         if name in self.model.peft_config:
             self.model.delete_adapter(name)
         self.model.load_adapter(str(folder), adapter_name=name, is_trainable=True)
-        meta = folder / ADAPTED_FILE
-        self.adapted[name] = check_feature_groups(json.loads(meta.read_text())["adapted"] if meta.exists() else ())
+        self.adapted[name] = check_feature_groups(meta.get("adapted", ()))
+        self.references[name] = reference
         self.set_adapter(name)
         return name
 
@@ -159,9 +173,10 @@ class DiffusionPolicy(nn.Module):
         return [p for p in self.model.parameters() if p.requires_grad]
 
     # --- the Gaussian -----------------------------------------------------------------------------------
-    def prior_features(self) -> torch.Tensor | None:
-        """(F,) bool mask of the slot features the active adapter leaves to the prior (None: it adapts all)."""
-        groups = self.adapted.get(self.adapter, tuple(FEATURE_GROUPS))
+    def prior_features(self, adapter: str | None = None) -> torch.Tensor | None:
+        """(F,) bool mask of the slot features an adapter (default: the active one) leaves to its reference
+        (None: it adapts all)."""
+        groups = self.adapted.get(adapter or self.adapter, tuple(FEATURE_GROUPS))
         if len(groups) == len(FEATURE_GROUPS):
             return None
         keep = torch.ones(self.prior.spec.feature_dim, dtype=torch.bool)
@@ -169,17 +184,38 @@ class DiffusionPolicy(nn.Module):
             keep[FEATURE_GROUPS[g]] = False
         return keep
 
+    @contextlib.contextmanager
+    def _using(self, adapter: str):
+        """Context in which ``adapter`` is the active one (the previous one afterwards)."""
+        active = self.adapter
+        if adapter == active:
+            yield
+            return
+        self.set_adapter(adapter)
+        try:
+            yield
+        finally:
+            self.set_adapter(active)
+
     def eps(self, x_t: torch.Tensor, t: torch.Tensor, floor: torch.Tensor | None = None,
-            floor_context: torch.Tensor | None = None) -> torch.Tensor:
-        """eps_theta(x_t, t, floor) with the active adapter, the prior's eps on the features it does not adapt."""
-        eps = self.model(x_t, t, floor=floor, floor_context=floor_context)
-        keep = self.prior_features()
+            floor_context: torch.Tensor | None = None, adapter: str | None = None) -> torch.Tensor:
+        """eps_theta(x_t, t, floor) of an adapter (default: the active one), with its reference's eps on the
+        features it does not adapt (the prior's inside :meth:`base_policy`)."""
+        name = adapter or self.adapter
+        with self._using(name):
+            eps = self.model(x_t, t, floor=floor, floor_context=floor_context)
+        keep = self.prior_features(name)
         if keep is None or self._adapters_off:
             return eps
-        with torch.no_grad(), self.base_policy():
-            base = self.model(x_t, t, floor=floor, floor_context=floor_context)
+        reference = self.references.get(name)
+        with torch.no_grad():
+            if reference is None:
+                with self.base_policy():
+                    base = self.model(x_t, t, floor=floor, floor_context=floor_context)
+            else:
+                base = self.eps(x_t, t, floor=floor, floor_context=floor_context, adapter=reference)
         keep = keep.to(eps.device).expand_as(eps)
-        if "class" not in self.adapted[self.adapter]:  # slots the prior leaves empty stay the prior's
+        if "class" not in self.adapted[name]:  # slots the reference leaves empty stay the reference's
             classes = self.schedule.predict_x0(x_t, t, base)[..., FEATURE_GROUPS["class"]]
             keep = keep | (classes.argmax(-1) == classes.shape[-1] - 1)[..., None]
         return torch.where(keep, base, eps)

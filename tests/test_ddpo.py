@@ -244,3 +244,43 @@ def test_a_placement_adapter_moves_objects_but_keeps_the_priors_classes_and_size
         ("position", "footprint", "height", "yaw")
     with pytest.raises(ValueError, match="unknown feature group.*colour.*choose from position"):
         DiffusionPolicy(tiny_prior(), num_steps=STEPS, adapted=["colour"])
+
+
+def test_a_partial_adapter_follows_the_adapter_it_starts_from_and_carries_it_when_saved(tmp_path):
+    """A stage-2 adapter of some features only (here height) keeps the stage-1 adapter's prediction, not the
+    prior's, on the others; saved and loaded into a policy without the stage-1 adapter it samples the same."""
+    def perturb(policy, adapter, seed):
+        g = torch.Generator().manual_seed(seed)
+        with torch.no_grad():
+            for name, p in policy.model.named_parameters():
+                if "lora_B" in name and f".{adapter}." in name:
+                    p.add_(0.3 * torch.randn(p.shape, generator=g))
+
+    policy = DiffusionPolicy(tiny_prior(), num_steps=STEPS)
+    perturb(policy, "stage1", 0)  # a "trained" stage-1 adapter of every feature
+    policy.add_adapter("task", init_from="stage1", adapted=["height"])
+    perturb(policy, "task", 1)  # a "trained" task adapter
+    assert policy.references == {"stage1": None, "task": "stage1"} and policy.adapter == "task"
+    x = torch.randn(3, policy.prior.num_slots, policy.prior.spec.feature_dim, generator=torch.Generator().manual_seed(2))
+    t, floor = torch.full((3,), 300), policy.prior.floor_condition(FLOORS[:3])
+    with torch.no_grad():
+        task, stage1 = policy.eps(x, t, floor), policy.eps(x, t, floor, adapter="stage1")
+        with policy.base_policy():
+            prior = policy.eps(x, t, floor)
+    assert policy.adapter == "task"
+    lora = [(n, p) for n, p in policy.model.named_parameters() if "lora_" in n]
+    assert lora and all(p.requires_grad == (".task." in n) for n, p in lora)  # only the task adapter trains
+    others = torch.ones(policy.prior.spec.feature_dim, dtype=torch.bool)
+    others[4] = False
+    assert torch.equal(task[..., others], stage1[..., others])  # every feature but height: stage 1's
+    assert not torch.allclose(task[..., others], prior[..., others])  # ... and not the prior's
+    assert (task[..., 4] - stage1[..., 4]).abs().max() > 1e-4  # height: the task adapter's
+
+    folder = policy.save_adapter(tmp_path / "adapters")
+    assert (folder / "reference" / "stage1" / "adapter_config.json").exists()
+    other = DiffusionPolicy(tiny_prior(), num_steps=STEPS, adapter="scratch")
+    assert other.load_adapter(folder) == "task" and other.references["task"] == "task_reference"
+    g = lambda: torch.Generator().manual_seed(5)  # noqa: E731
+    a, b = policy.sample(FLOORS, generator=g()), other.sample(FLOORS, generator=g())
+    assert torch.equal(a.labels, b.labels) and torch.allclose(a.translations, b.translations)
+    assert torch.allclose(a.half_sizes, b.half_sizes)
