@@ -72,7 +72,8 @@ class SceneResult:
 
     def overlays(self) -> Overlays:
         """Overlays for :func:`iarcs_env.render.render_layout` of the scene's centred layout."""
-        return Overlays(colliding=self.colliding, out_of_bound=self.out_of_bound, unreachable=self.unreachable)
+        return Overlays(colliding=self.colliding, out_of_bound=self.out_of_bound, off_floor=self.off_floor,
+                        unreachable=self.unreachable)
 
 
 @dataclass

@@ -3,7 +3,8 @@
 The image's x axis is the scene's +x, its rows run along +z. Ground objects are drawn lowest first, so a
 taller object covers a lower one as a camera above the room would see it; ceiling and pendant lamps are
 drawn as outlines only. A short dark tick marks each object's front (local +z). Optional overlays mark
-colliding objects (red), out-of-bound objects (magenta) and unreachable free floor (orange), as used by
+colliding objects (red), out-of-bound objects (magenta), objects off the floor (sunk or lifted; blue diagonals)
+and unreachable free floor (orange), as used by
 evaluation reports and by reward reflection.
 """
 
@@ -36,16 +37,19 @@ WALL = (60, 60, 60)
 COLLISION = (230, 0, 0)
 OUT_OF_BOUND = (200, 0, 200)
 UNREACHABLE = (255, 140, 0)
+OFF_FLOOR = (0, 70, 255)
 
 
 @dataclass
 class Overlays:
-    """What to mark on a render: object indices that collide or leave the floor, and an unreachable
+    """What to mark on a render: object indices that collide, leave the floor plan or do not stand on the
+    floor (sunk into it or lifted off it), and an unreachable
     floor mask ``(grid, xs, zs)`` (``grid[i, j]`` True where the cell at z = zs[i], x = xs[j] is free
     floor that cannot be reached)."""
 
     colliding: Sequence[int] = field(default_factory=list)
     out_of_bound: Sequence[int] = field(default_factory=list)
+    off_floor: Sequence[int] = field(default_factory=list)
     unreachable: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
 
 
@@ -103,6 +107,10 @@ def render_layout(layout: Layout, size: int = 256, extent: float | None = None, 
             draw.line(px(front), fill=(30, 30, 30), width=2 * line)
     for k in sorted(colliding | outside):
         draw.polygon(px(corners[k]), outline=COLLISION if k in colliding else OUT_OF_BOUND, width=3 * line)
+    for k in overlays.off_floor if overlays else ():
+        a, b, c, d = px(corners[k])
+        draw.line([a, c], fill=OFF_FLOOR, width=2 * line)
+        draw.line([b, d], fill=OFF_FLOOR, width=2 * line)
 
     if legend or title:
         img = _decorate(img, layout, legend, title)

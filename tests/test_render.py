@@ -37,6 +37,10 @@ def test_overlays_mark_issues():
     plain = render_layout(lay, size=128)
     marked = render_layout(lay, size=128, overlays=Overlays(colliding=[0]))
     assert (marked == (230, 0, 0)).all(-1).sum() > 50 and not (plain == (230, 0, 0)).all(-1).any()
+    sunk = render_layout(lay, size=128, extent=2.5, overlays=Overlays(off_floor=[0]))
+    blue = np.argwhere((sunk == (0, 70, 255)).all(-1))  # the footprint's diagonals cross at the bed's centre
+    assert len(blue) > 50 and not (plain == (0, 70, 255)).all(-1).any()
+    assert np.allclose(blue.mean(0), [(1.0 - 2.0) * 128 / 5 + 64] * 2, atol=3)
     grid = np.zeros((4, 4), bool)
     grid[1, 2] = True  # the cell at x = 1.0, z = 3.0: free floor in the L's upper arm
     cells = np.arange(4) * 0.5
