@@ -14,6 +14,10 @@ if TYPE_CHECKING:
     from .ddpo import DDPO
 
 
+BEST_FILE = "best.json"
+"""Beside the best adapter kept by :class:`EvalCallback`: its epoch, the metric and its value."""
+
+
 class BaseCallback:
     """Hooks: ``_on_training_start``, ``_on_rollout_end`` (rollout statistics in ``self.locals``),
     ``_on_step`` (after each epoch; return False to stop) and ``_on_training_end``."""
@@ -133,10 +137,13 @@ class EvalCallback(BaseCallback):
     """Every ``eval_freq`` epochs: sample scenes on fixed evaluation floor plans, compute the paper's
     metrics and the reward, log them (and a grid of top-down renders) to TensorBoard, and append them to
     ``log_path`` (JSON lines) when given. ``scene_metrics`` ``{name: f(SceneBatch) -> float}`` adds metrics
-    (e.g. a task's success rate)."""
+    (e.g. a task's success rate). With ``best_path``, the adapter of the evaluation with the highest
+    ``best_key`` so far is kept there (peft format, with ``best.json``: its epoch and value), as
+    Stable-Baselines' ``best_model_save_path``; a resumed run carries on from the best value saved."""
 
     def __init__(self, floors, eval_freq: int = 5, n_render: int = 16, seed: int = 0,
-                 log_path: str | Path | None = None, scene_metrics: dict | None = None, verbose: int = 0):
+                 log_path: str | Path | None = None, scene_metrics: dict | None = None, verbose: int = 0,
+                 best_path: str | Path | None = None, best_key: str = "reward"):
         super().__init__(verbose)
         self.scene_metrics = scene_metrics
         self.floors = list(floors)
@@ -145,6 +152,10 @@ class EvalCallback(BaseCallback):
         self.seed = seed
         self.log_path = Path(log_path) if log_path else None
         self.history: list[dict] = []
+        self.best_path = Path(best_path) if best_path else None
+        self.best_key = best_key
+        saved = self.best_path / BEST_FILE if self.best_path else None
+        self.best_value = json.loads(saved.read_text())["value"] if saved and saved.exists() else -np.inf
 
     def _on_step(self) -> bool:
         if self.model.epoch % self.eval_freq == 0:
@@ -156,7 +167,22 @@ class EvalCallback(BaseCallback):
                     f.write(json.dumps({"epoch": self.model.epoch, "num_timesteps": self.num_timesteps, **metrics}) + "\n")
             if self.verbose:
                 print(f"eval at epoch {self.model.epoch}: " + ", ".join(f"{k}={v:.4g}" for k, v in metrics.items()))
+            if self.best_path and metrics[self.best_key] > self.best_value:
+                self.best_value = metrics[self.best_key]
+                self._save_best()
         return True
+
+    def _save_best(self) -> None:
+        """Write the adapter beside, then swap it in: a kill never leaves a half-written best adapter."""
+        import shutil
+
+        tmp = self.best_path.with_name(self.best_path.name + ".tmp")
+        shutil.rmtree(tmp, ignore_errors=True)
+        self.model.policy.save_adapter(tmp)
+        (tmp / BEST_FILE).write_text(json.dumps({"epoch": self.model.epoch, "key": self.best_key,
+                                                 "value": self.best_value}))
+        shutil.rmtree(self.best_path, ignore_errors=True)
+        tmp.rename(self.best_path)
 
 
 class StopTrainingOnRewardThreshold(BaseCallback):

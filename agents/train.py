@@ -23,6 +23,7 @@ from .config import dataclass_from_dict, load_yaml_config
 
 CHECKPOINT_DIR = "checkpoint"
 ADAPTERS_DIR = "adapters"
+BEST_DIR = "best"
 
 
 @dataclass
@@ -74,6 +75,11 @@ class TrainConfig:
     """Evaluate (metrics + render grid to TensorBoard) every this many epochs."""
     checkpoint_every: int = 1
     """Save the resumable state every this many epochs."""
+    export: str = "last"
+    """The adapter a finished run leaves in ``adapters/``: ``last``, or ``best``: the one of the evaluation with
+    the highest task success (stage 2 with a checker; else the evaluation reward) on the evaluation floors.
+    Either way the best one is kept in ``best/`` (``best.json``: its epoch and value) and every evaluation is
+    in ``eval.jsonl``. DDPO's success can fall back after a peak (docs/results/stage2_tasks.md)."""
     seed: int = 0
     """Seeds everything (floor choice, policy noise, environment)."""
     num_threads: int = 0
@@ -145,6 +151,8 @@ def run(cfg: TrainConfig, progress: bool = True, log=print):
     from .callbacks import CheckpointCallback, EvalCallback
     from .ddpo import DDPO
 
+    if cfg.export not in ("last", "best"):
+        raise ValueError(f"export must be 'last' or 'best', got {cfg.export!r}")
     if cfg.num_threads:
         torch.set_num_threads(cfg.num_threads)
     out = Path(cfg.out)
@@ -155,7 +163,7 @@ def run(cfg: TrainConfig, progress: bool = True, log=print):
         before = yaml.safe_load(saved.read_text())
         now = dataclasses.asdict(cfg)
         defaults = dataclasses.asdict(TrainConfig())  # a key missing from an older run's config had its default
-        changed = [k for k in now if k not in ("epochs", "out", "eval_every", "checkpoint_every")
+        changed = [k for k in now if k not in ("epochs", "out", "eval_every", "checkpoint_every", "export")
                    and before.get(k, defaults[k]) != now[k]]
         if changed:
             raise ValueError(f"{out} holds a run with other settings ({', '.join(changed)}); use another out folder")
@@ -170,21 +178,42 @@ def run(cfg: TrainConfig, progress: bool = True, log=print):
     callbacks = [CheckpointCallback(cfg.checkpoint_every, ckpt)]
     if task is not None:
         callbacks.append(task["reflection"])
+    metrics = {} if task is None else task["metrics"]
+    best_key = next(iter(metrics), "reward")  # the task's success rate, if it has a checker
     callbacks.append(EvalCallback(eval_floors, eval_freq=cfg.eval_every, log_path=out / "eval.jsonl", verbose=1,
-                                  scene_metrics=None if task is None else task["metrics"]))
+                                  scene_metrics=metrics, best_path=out / BEST_DIR, best_key=best_key))
     total = cfg.epochs * cfg.num_envs * cfg.num_steps * algo.config.num_batches_per_epoch
     try:
         algo.learn(total, callback=callbacks, progress_bar=progress)
     finally:
         if task is not None:
             task["reward"].sandbox.close()
-    policy.save_adapter(out / ADAPTERS_DIR)
-    log(f"adapter: {out / ADAPTERS_DIR / cfg.adapter} (peft format); TensorBoard: {out / 'tb'}")
+    export_adapter(cfg, policy, out, log)
     if task is not None:
         from .stage2 import save_task_outputs
 
         log(f"reward program: {save_task_outputs(out, task['memory'], task['agent']) / 'program.py'}")
     return algo
+
+
+def export_adapter(cfg: TrainConfig, policy, out: Path, log=print) -> Path:
+    """Write the run's adapter to ``out/adapters/<name>``: the last one, or with ``export: best`` the best kept."""
+    import shutil
+
+    from .callbacks import BEST_FILE
+
+    best = out / BEST_DIR
+    dest = out / ADAPTERS_DIR / cfg.adapter
+    if cfg.export == "best" and (best / BEST_FILE).exists():
+        shutil.rmtree(dest, ignore_errors=True)
+        shutil.copytree(best / cfg.adapter, dest)
+        info = json.loads((best / BEST_FILE).read_text())
+        log(f"adapter: {dest} (peft format), the best evaluation's: {info['key']} {info['value']:.4g} at epoch "
+            f"{info['epoch']}; TensorBoard: {out / 'tb'}")
+    else:
+        policy.save_adapter(out / ADAPTERS_DIR)
+        log(f"adapter: {dest} (peft format), the last epoch's; TensorBoard: {out / 'tb'}")
+    return dest
 
 
 def _setup_task(cfg: TrainConfig, out: Path, resume: Path | None, log) -> dict:

@@ -30,6 +30,17 @@ def test_train_writes_a_complete_run_folder_and_resumes(tiny_run_config, tmp_pat
     assert main(["train", "--config", str(tiny_run_config), "--epochs", "3"]) == 0
     assert "resuming" in capsys.readouterr().out
     assert json.loads((run / "checkpoint" / "trainer.json").read_text())["epoch"] == 3
+    evals = [json.loads(l) for l in (run / "eval.jsonl").read_text().splitlines()]
+    best = json.loads((run / "best" / "best.json").read_text())  # the best evaluation's adapter is kept
+    top = max(evals, key=lambda e: e["reward"])
+    assert best == {"epoch": top["epoch"], "key": "reward", "value": top["reward"]}
+    weights = lambda folder: (folder / "adapter_model.safetensors").read_bytes()  # noqa: E731
+    assert weights(run / "adapters" / "stage1") == weights(run / "checkpoint" / "adapter" / "stage1")  # the last
+    cfg = yaml.safe_load(tiny_run_config.read_text())
+    tiny_run_config.write_text(yaml.safe_dump({**cfg, "export": "best"}))
+    assert main(["train", "--config", str(tiny_run_config), "--epochs", "3"]) == 0
+    assert f"the best evaluation's: reward {top['reward']:.4g} at epoch {top['epoch']}" in capsys.readouterr().out
+    assert weights(run / "adapters" / "stage1") == weights(run / "best" / "stage1")
 
     out = tmp_path / "samples.json"
     assert main(["sample", "--checkpoint", str(run), "--num-scenes", "3", "--steps", "4", "--out", str(out)]) == 0
