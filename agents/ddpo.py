@@ -59,7 +59,8 @@ class DDPOConfig:
     weight's share of the signal whatever the spread of its values (e.g. a task reward in [0, 1] next to
     universal rewards that vary much more)."""
     kl_coef: float = 0.0
-    """Weight of a KL penalty to the base policy (adapters disabled), against diversity collapse."""
+    """Weight of a KL penalty to the policy the adapter starts from (its reference adapter, e.g. stage 1 for a
+    partial stage-2 adapter; else the prior, adapters disabled), against diversity collapse and drift."""
     seed: int = 0
     """Seeds floor choice, the policy's noise and the environment."""
 
@@ -233,9 +234,10 @@ class DDPO:
         return keep if len(keep) else torch.arange(len(t))
 
     def kl_to_base(self, batch: TensorDict) -> torch.Tensor:
-        """KL(pi_theta || pi_base) of the step Gaussians (equal variances): mean ||mu - mu_base||^2 / (2 sigma^2)."""
+        """KL(pi_theta || pi_ref) of the step Gaussians (equal variances): mean ||mu - mu_ref||^2 / (2 sigma^2),
+        pi_ref the policy's :meth:`~agents.policy.DiffusionPolicy.reference_policy`."""
         mean, std = self.policy(batch["x_t"], batch["t"], batch["floor"])
-        with torch.no_grad(), self.policy.base_policy():
+        with torch.no_grad(), self.policy.reference_policy():
             base, _ = self.policy(batch["x_t"], batch["t"], batch["floor"])
         return ((mean - base) ** 2 / (2 * std**2)).flatten(1).mean(1).mean()
 

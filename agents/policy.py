@@ -169,6 +169,18 @@ class DiffusionPolicy(nn.Module):
         finally:
             self._adapters_off = False
 
+    @contextlib.contextmanager
+    def reference_policy(self):
+        """Context in which the policy is the active adapter's reference: the adapter it started from (its
+        reference's own mix), or the prior. The policy a KL penalty holds the adapter near."""
+        reference = self.references.get(self.adapter)
+        if reference is None:
+            with self.base_policy():
+                yield
+        else:
+            with self._using(reference):
+                yield
+
     def trainable_parameters(self) -> list[nn.Parameter]:
         return [p for p in self.model.parameters() if p.requires_grad]
 

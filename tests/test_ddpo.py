@@ -267,6 +267,8 @@ def test_a_partial_adapter_follows_the_adapter_it_starts_from_and_carries_it_whe
         task, stage1 = policy.eps(x, t, floor), policy.eps(x, t, floor, adapter="stage1")
         with policy.base_policy():
             prior = policy.eps(x, t, floor)
+        with policy.reference_policy():  # what a KL penalty holds the task adapter near: stage 1
+            assert torch.equal(policy.eps(x, t, floor), stage1)
     assert policy.adapter == "task"
     lora = [(n, p) for n, p in policy.model.named_parameters() if "lora_" in n]
     assert lora and all(p.requires_grad == (".task." in n) for n, p in lora)  # only the task adapter trains
