@@ -1,4 +1,4 @@
-"""``iarcs demo``: the first thing a new user sees work, offline, on a CPU, in about five minutes.
+"""``iarcs demo``: the first thing a new user sees work, offline, on a CPU, in about 7 minutes.
 
 It takes the shipped small bedroom prior and its shipped stage-1 adapter (DDPO on the universal rewards),
 has the offline planner write a reward program for one paper task, runs a short stage 2 (DDPO from the
