@@ -185,7 +185,7 @@ class DiffusionPolicy(nn.Module):
         return [p for p in self.model.parameters() if p.requires_grad]
 
     # --- the Gaussian -----------------------------------------------------------------------------------
-    def prior_features(self, adapter: str | None = None) -> torch.Tensor | None:
+    def reference_features(self, adapter: str | None = None) -> torch.Tensor | None:
         """(F,) bool mask of the slot features an adapter (default: the active one) leaves to its reference
         (None: it adapts all)."""
         groups = self.adapted.get(adapter or self.adapter, tuple(FEATURE_GROUPS))
@@ -216,7 +216,7 @@ class DiffusionPolicy(nn.Module):
         name = adapter or self.adapter
         with self._using(name):
             eps = self.model(x_t, t, floor=floor, floor_context=floor_context)
-        keep = self.prior_features(name)
+        keep = self.reference_features(name)
         if keep is None or self._adapters_off:
             return eps
         reference = self.references.get(name)

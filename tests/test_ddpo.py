@@ -234,7 +234,7 @@ def test_a_placement_adapter_moves_objects_but_keeps_the_priors_classes_and_size
     other = DiffusionPolicy(tiny_prior(), num_steps=STEPS, adapter="scratch")
     other.load_adapter(folder)
     assert other.adapted[other.adapter] == ("position", "elevation", "yaw")
-    assert torch.equal(other.prior_features(), policy.prior_features())
+    assert torch.equal(other.reference_features(), policy.reference_features())
     g = lambda: torch.Generator().manual_seed(9)  # noqa: E731
     a, b = policy.sample(FLOORS, generator=g()), other.sample(FLOORS, generator=g())
     assert torch.equal(a.labels, b.labels) and torch.allclose(a.translations, b.translations)
