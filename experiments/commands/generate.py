@@ -58,13 +58,16 @@ def matching_task(constraint: str) -> str | None:
 
 
 def train_adapter(args, room: str, task: str | None, run_dir: Path) -> Path:
-    """Stage 2 for the constraint (the quick task config with this constraint); returns the run folder."""
+    """Stage 2 for the constraint (the quick task config with this constraint); returns the run folder. With a
+    paper task's checker the adapter is the best evaluation's (a reward redefined by reflection cannot rank
+    evaluations against each other, so without one it is the last epoch's)."""
     from agents.train import load_train_config, run
 
     agent = {"model": args.model or "", "api_base": args.api_base or ""}
     if args.model:
         agent["llm"] = {"timeout": args.timeout}
     cfg = load_train_config(TEMPLATE, room=room, out=str(run_dir), epochs=args.epochs, adapter="task",
+                            export="best" if task else "last",
                             task={"constraint": args.constraint, "checker": task or "", "reflect_every": 10, **agent})
     run(cfg)
     return run_dir
