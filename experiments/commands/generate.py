@@ -207,8 +207,8 @@ def write_comparison(out: Path, rows: list[dict], task: str | None = None, n_sho
 def picture_table(rows: list[dict], pictures: list[Path]) -> str:
     return "\n".join(["| " + " | ".join(r["name"] for r in rows) + " |", "|" + "---|" * len(rows),
                       "| " + " | ".join(f"![{r['name']}]({p.name})" for r, p in zip(rows, pictures)) + " |", "",
-                      "Red: colliding objects; magenta: out of bound; orange: floor an agent (radius 0.3 m) cannot "
-                      "reach from the largest free region."])
+                      "Red: colliding objects; magenta: out of bound; blue diagonals: more than 5 cm off the floor; "
+                      "orange: floor an agent (radius 0.3 m) cannot reach from the largest free region."])
 
 
 def program_section(proposal: dict) -> list[str]:
