@@ -40,9 +40,9 @@ class TrainConfig:
     """Optional adapter folder (peft format) to start from; ``default``: the shipped stage-1 adapter."""
     adapt: list = field(default_factory=list)
     """Feature groups the adapter adapts (agents.policy.FEATURE_GROUPS: position, elevation, footprint, height,
-    yaw, class; translation = position and elevation, size = footprint and height); the others keep the
-    prior's prediction. Empty: all of them, or with ``init_adapter`` the same as that adapter.
-    ``[position, yaw]`` moves and turns objects on the floor but keeps which objects a room has and their sizes."""
+    yaw, class; translation = position and elevation, size = footprint and height); the others follow
+    ``init_adapter`` (the prior without one). Empty: all of them, or with ``init_adapter`` the same as that
+    adapter. ``[elevation, height]`` lowers or raises objects but keeps which objects a room has and where."""
     algorithm: str = "ddpo"
     """ddpo (= ddpo-is) or ddpo-sf."""
     num_envs: int = 32

@@ -126,8 +126,9 @@ def accessibility_reward(batch: SceneBatch, cell: float = 0.1, agent_radius: flo
 
 
 @register_reward("floor_contact")
-def floor_contact_reward(batch: SceneBatch, tolerance: float = geo.FLOOR_CONTACT_TOL, bonus: float = 1.0) -> torch.Tensor:
-    """+``bonus`` when every ground object stands on the floor, else minus the total gap beyond ``tolerance`` (m)."""
+def floor_contact_reward(batch: SceneBatch, tolerance: float = geo.FLOOR_CONTACT_TOL,
+                         bonus: float = 1.0) -> torch.Tensor:
+    """+``bonus`` when every ground object stands on the floor, else minus the total gap beyond ``tolerance``."""
     excess = (geo.floor_gaps(batch.translations, batch.half_sizes, batch.ground_mask) - tolerance).clamp(min=0)
     total = excess.sum(1)
     return _out(torch.where(total > 0, -total, torch.full_like(total, bonus)), batch)

@@ -74,7 +74,7 @@ def cmd_sample(args) -> int:
     if args.eta < 0:
         raise CLIError(f"--eta must be >= 0, got {args.eta}")
 
-    policy = None  # with an adapter: sample through the policy's eps (the prior's on the features it leaves)
+    policy = None  # with an adapter: sample through the policy's eps (its reference's on the features it leaves)
     if args.checkpoint and (Path(args.checkpoint) / "adapter_config.json").exists():
         from agents.policy import DiffusionPolicy
 
