@@ -7,6 +7,7 @@ import torch
 from tensordict import TensorDict
 
 import iarcs_env  # noqa: F401
+from conftest import load_benchmark
 from agents.callbacks import CheckpointCallback, EvalCallback, StopTrainingOnRewardThreshold
 from agents.ddpo import DDPO, DDPOSF, get_algorithm
 from agents.denoiser import ScenePrior
@@ -103,6 +104,15 @@ def test_per_term_advantages_give_every_term_its_weights_share():
     assert both[4] - both[6] > 1.0 and both[4] > 0 > both[6]
     assert both[0] > 0 > both[1]  # the universal term still counts
 
+
+
+def test_reward_spread_measures_the_spread_within_floor_groups():
+    """benchmarks/reward_spread.py: a term that differs only between floors has no within-floor spread
+    (it cannot move a per-floor advantage), one that differs inside each floor has its own std."""
+    spread = load_benchmark("reward_spread").within_floor_std
+    floor = torch.tensor([0, 0, 1, 1])
+    assert spread(torch.tensor([1.0, 1.0, 5.0, 5.0]), floor) == 0.0
+    assert spread(torch.tensor([0.0, 2.0, 4.0, 8.0]), floor) == pytest.approx((1.0 + 2.0) / 2)
 
 @pytest.mark.parametrize("algo", [DDPO, DDPOSF])
 def test_updates_move_the_policy_towards_high_advantage_actions(algo):
