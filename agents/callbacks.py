@@ -17,6 +17,28 @@ if TYPE_CHECKING:
 BEST_FILE = "best.json"
 """Beside the best adapter kept by :class:`EvalCallback`: its epoch, the metric and its value."""
 
+LOWER_IS_BETTER = ("Col_obj", "Col_scene", "R_out", "R_off_floor")
+HIGHER_IS_BETTER = ("R_reach", "R_walkable", "mean_objects")
+"""The evaluation metrics a ``best_tolerance`` may guard, by the direction in which they improve."""
+
+
+def check_best_tolerance(tolerance: dict) -> dict[str, float]:
+    """``{metric: allowed worsening}`` with known metric names and non-negative numbers, else a clear error."""
+    known = LOWER_IS_BETTER + HIGHER_IS_BETTER
+    for name, amount in tolerance.items():
+        if name not in known:
+            raise ValueError(f"best_tolerance: unknown metric {name!r}; choose from {', '.join(known)}")
+        if not isinstance(amount, (int, float)) or amount < 0:
+            raise ValueError(f"best_tolerance: {name} must be a number >= 0 (how much worse than at the start "
+                             f"it may get), got {amount!r}")
+    return {k: float(v) for k, v in tolerance.items()}
+
+
+def worsening(metrics: dict, start: dict, name: str) -> float:
+    """How much worse ``name`` is in ``metrics`` than in ``start`` (negative when it improved)."""
+    change = metrics[name] - start[name]
+    return change if name in LOWER_IS_BETTER else -change
+
 
 class BaseCallback:
     """Hooks: ``_on_training_start``, ``_on_rollout_end`` (rollout statistics in ``self.locals``),
@@ -139,11 +161,15 @@ class EvalCallback(BaseCallback):
     ``log_path`` (JSON lines) when given. ``scene_metrics`` ``{name: f(SceneBatch) -> float}`` adds metrics
     (e.g. a task's success rate). With ``best_path``, the adapter of the evaluation with the highest
     ``best_key`` so far is kept there (peft format, with ``best.json``: its epoch and value), as
-    Stable-Baselines' ``best_model_save_path``; a resumed run carries on from the best value saved."""
+    Stable-Baselines' ``best_model_save_path``; a resumed run carries on from the best value saved.
+    ``best_tolerance`` ``{metric: amount}`` (e.g. ``{"Col_obj": 0.02, "mean_objects": 0.3}``) also evaluates
+    the starting adapter (epoch 0 in ``log_path``) and keeps only evaluations where no listed metric is worse
+    than there by more than its amount: a task's success bought by collisions or emptied rooms is never the
+    best."""
 
     def __init__(self, floors, eval_freq: int = 5, n_render: int = 16, seed: int = 0,
                  log_path: str | Path | None = None, scene_metrics: dict | None = None, verbose: int = 0,
-                 best_path: str | Path | None = None, best_key: str = "reward"):
+                 best_path: str | Path | None = None, best_key: str = "reward", best_tolerance: dict | None = None):
         super().__init__(verbose)
         self.scene_metrics = scene_metrics
         self.floors = list(floors)
@@ -156,21 +182,51 @@ class EvalCallback(BaseCallback):
         self.best_key = best_key
         saved = self.best_path / BEST_FILE if self.best_path else None
         self.best_value = json.loads(saved.read_text())["value"] if saved and saved.exists() else -np.inf
+        self.best_tolerance = check_best_tolerance(best_tolerance or {})
+        self.start: dict | None = None
+        """The starting adapter's evaluation, the reference of ``best_tolerance``."""
+
+    def _on_training_start(self) -> None:
+        if not self.best_tolerance:
+            return
+        logged = self._logged()
+        self.start = next((row for row in logged if row["epoch"] == 0), None)
+        if self.start is None and self.model.epoch == 0:
+            self.start = self._evaluate()
+        if self.start is None:
+            raise ValueError(f"best_tolerance needs the starting adapter's evaluation (epoch 0), which "
+                             f"{self.log_path} of this resumed run lacks; drop best_tolerance or start a new run")
 
     def _on_step(self) -> bool:
         if self.model.epoch % self.eval_freq == 0:
-            metrics = self.model.evaluate(self.floors, seed=self.seed, n_render=self.n_render,
-                                          scene_metrics=self.scene_metrics)
-            self.history.append(metrics)
-            if self.log_path:
-                with open(self.log_path, "a") as f:
-                    f.write(json.dumps({"epoch": self.model.epoch, "num_timesteps": self.num_timesteps, **metrics}) + "\n")
-            if self.verbose:
-                print(f"eval at epoch {self.model.epoch}: " + ", ".join(f"{k}={v:.4g}" for k, v in metrics.items()))
-            if self.best_path and metrics[self.best_key] > self.best_value:
+            metrics = self._evaluate()
+            if self.best_path and metrics[self.best_key] > self.best_value and self._within_tolerance(metrics):
                 self.best_value = metrics[self.best_key]
                 self._save_best()
         return True
+
+    def _evaluate(self) -> dict:
+        metrics = self.model.evaluate(self.floors, seed=self.seed, n_render=self.n_render,
+                                      scene_metrics=self.scene_metrics)
+        self.history.append(metrics)
+        if self.log_path:
+            with open(self.log_path, "a") as f:
+                f.write(json.dumps({"epoch": self.model.epoch, "num_timesteps": self.num_timesteps, **metrics}) + "\n")
+        if self.verbose:
+            print(f"eval at epoch {self.model.epoch}: " + ", ".join(f"{k}={v:.4g}" for k, v in metrics.items()))
+        return metrics
+
+    def _logged(self) -> list[dict]:
+        if not (self.log_path and self.log_path.exists()):
+            return []
+        return [json.loads(line) for line in self.log_path.read_text().splitlines() if line.strip()]
+
+    def _within_tolerance(self, metrics: dict) -> bool:
+        over = [f"{name} {worsening(metrics, self.start, name):+.3g} (allowed {amount:g})"
+                for name, amount in self.best_tolerance.items() if worsening(metrics, self.start, name) > amount]
+        if over and self.verbose:
+            print("not kept as best: worse than at the start by " + ", ".join(over))
+        return not over
 
     def _save_best(self) -> None:
         """Write the adapter beside, then swap it in: a kill never leaves a half-written best adapter."""

@@ -80,6 +80,10 @@ class TrainConfig:
     the highest task success (stage 2 with a checker; else the evaluation reward) on the evaluation floors.
     Either way the best one is kept in ``best/`` (``best.json``: its epoch and value) and every evaluation is
     in ``eval.jsonl``. DDPO's success can fall back after a peak (docs/results/stage2_tasks.md)."""
+    best_tolerance: dict = field(default_factory=dict)
+    """``{metric: amount}``: an evaluation counts for ``best`` only if none of these metrics (Col_obj, Col_scene,
+    R_out, R_off_floor, R_reach, R_walkable, mean_objects) is worse than the starting adapter's (evaluated at
+    epoch 0) by more than its amount, e.g. ``{Col_obj: 0.02, R_out: 0.01, mean_objects: 0.3}``."""
     seed: int = 0
     """Seeds everything (floor choice, policy noise, environment)."""
     num_threads: int = 0
@@ -148,11 +152,12 @@ def run(cfg: TrainConfig, progress: bool = True, log=print):
     """Train (resuming ``cfg.out/checkpoint`` when it exists); returns the algorithm."""
     from iarcs_env.env import default_floors
 
-    from .callbacks import CheckpointCallback, EvalCallback
+    from .callbacks import CheckpointCallback, EvalCallback, check_best_tolerance
     from .ddpo import DDPO
 
     if cfg.export not in ("last", "best"):
         raise ValueError(f"export must be 'last' or 'best', got {cfg.export!r}")
+    check_best_tolerance(cfg.best_tolerance)
     if cfg.num_threads:
         torch.set_num_threads(cfg.num_threads)
     out = Path(cfg.out)
@@ -163,7 +168,8 @@ def run(cfg: TrainConfig, progress: bool = True, log=print):
         before = yaml.safe_load(saved.read_text())
         now = dataclasses.asdict(cfg)
         defaults = dataclasses.asdict(TrainConfig())  # a key missing from an older run's config had its default
-        changed = [k for k in now if k not in ("epochs", "out", "eval_every", "checkpoint_every", "export")
+        changed = [k for k in now if k not in ("epochs", "out", "eval_every", "checkpoint_every", "export",
+                                               "best_tolerance")
                    and before.get(k, defaults[k]) != now[k]]
         if changed:
             raise ValueError(f"{out} holds a run with other settings ({', '.join(changed)}); use another out folder")
@@ -181,7 +187,8 @@ def run(cfg: TrainConfig, progress: bool = True, log=print):
     metrics = {} if task is None else task["metrics"]
     best_key = next(iter(metrics), "reward")  # the task's success rate, if it has a checker
     callbacks.append(EvalCallback(eval_floors, eval_freq=cfg.eval_every, log_path=out / "eval.jsonl", verbose=1,
-                                  scene_metrics=metrics, best_path=out / BEST_DIR, best_key=best_key))
+                                  scene_metrics=metrics, best_path=out / BEST_DIR, best_key=best_key,
+                                  best_tolerance=cfg.best_tolerance))
     total = cfg.epochs * cfg.num_envs * cfg.num_steps * algo.config.num_batches_per_epoch
     try:
         algo.learn(total, callback=callbacks, progress_bar=progress)
@@ -212,6 +219,9 @@ def export_adapter(cfg: TrainConfig, policy, out: Path, log=print) -> Path:
             f"{info['epoch']}; TensorBoard: {out / 'tb'}")
     else:
         policy.save_adapter(out / ADAPTERS_DIR)
+        if cfg.export == "best":
+            log(f"warning: no evaluation was kept as best (none within best_tolerance {cfg.best_tolerance}); "
+                "exporting the last epoch's adapter")
         log(f"adapter: {dest} (peft format), the last epoch's; TensorBoard: {out / 'tb'}")
     return dest
 

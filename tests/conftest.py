@@ -53,6 +53,22 @@ def make_layout(objects, floor=((0, 0), (4, 0), (4, 3), (0, 3)), room="bedroom",
 L_SHAPE = ((0, 0), (4, 0), (4, 2), (2, 2), (2, 4), (0, 4))
 
 
+def perturb_zero_init(prior_path: Path, scale: float = 0.3) -> None:
+    """A freshly created prior is adaLN-zero: its blocks and output heads start at zero, so a LoRA adapter gets
+    no gradient. Fill those zero weights with noise (seeded) so that training moves the policy."""
+    import torch
+
+    from agents.denoiser import ScenePrior
+
+    prior = ScenePrior.load(prior_path)
+    gen = torch.Generator().manual_seed(0)
+    with torch.no_grad():
+        for param in prior.denoiser.parameters():
+            if not param.any():
+                param.copy_(torch.randn(param.shape, generator=gen) * scale)
+    prior.save(prior_path)
+
+
 def write_tiny_train_config(tmp_path: Path, **settings) -> Path:
     """A training YAML for a tiny bedroom prior (saved beside it): 8 scenes x 4 DDIM steps, 8 floors, so a
     run takes seconds. ``settings`` override or add TrainConfig fields."""

@@ -10,7 +10,7 @@ import pytest
 import yaml
 
 from experiments.cli import main
-from conftest import REPO, write_tiny_train_config
+from conftest import REPO, perturb_zero_init, write_tiny_train_config
 
 
 @pytest.fixture
@@ -45,6 +45,44 @@ def test_train_writes_a_complete_run_folder_and_resumes(tiny_run_config, tmp_pat
     out = tmp_path / "samples.json"
     assert main(["sample", "--checkpoint", str(run), "--num-scenes", "3", "--steps", "4", "--out", str(out)]) == 0
     assert len(json.loads(out.read_text())["scenes"]) == 3
+
+
+def test_best_tolerance_keeps_only_evaluations_close_to_the_start(tmp_path, capsys):
+    tolerance = {"Col_obj": 0.0, "R_out": 0.0, "mean_objects": 0.0}
+    config = write_tiny_train_config(tmp_path, epochs=6, export="best", best_tolerance=tolerance,
+                                     ddpo={"samples_per_floor": 4, "minibatch_size": 8, "learning_rate": 0.01})
+    perturb_zero_init(tmp_path / "prior.pt")  # so that the evaluations move
+    assert main(["train", "--config", str(config)]) == 0
+    run = tmp_path / "run"
+    evals = [json.loads(l) for l in (run / "eval.jsonl").read_text().splitlines()]
+    assert [e["epoch"] for e in evals] == [0, 1, 2, 3, 4, 5, 6]  # the starting adapter is the reference
+    start, best, rejected = evals[0], None, 0
+    for e in evals[1:]:  # what the guard must have done, replayed from the log
+        if best is None or e["reward"] > best["reward"]:
+            if (e["Col_obj"] <= start["Col_obj"] and e["R_out"] <= start["R_out"]
+                    and e["mean_objects"] >= start["mean_objects"]):
+                best = e
+            else:
+                rejected += 1
+    out = capsys.readouterr().out
+    assert out.count("not kept as best") == rejected
+    if best:
+        assert json.loads((run / "best" / "best.json").read_text())["epoch"] == best["epoch"]
+    else:
+        assert not (run / "best").exists() and "no evaluation was kept as best" in out
+    assert main(["train", "--config", str(config), "--epochs", "7"]) == 0  # resumed: the logged start is kept
+    assert [json.loads(l)["epoch"] for l in (run / "eval.jsonl").read_text().splitlines()].count(0) == 1
+
+
+def test_best_tolerance_directions():
+    from agents.callbacks import EvalCallback
+
+    cb = EvalCallback([], best_tolerance={"Col_obj": 0.02, "mean_objects": 0.5})
+    cb.start = {"Col_obj": 0.30, "mean_objects": 3.0}
+    assert cb._within_tolerance({"Col_obj": 0.31, "mean_objects": 2.6})      # worse, within the amounts
+    assert cb._within_tolerance({"Col_obj": 0.10, "mean_objects": 5.0})      # better
+    assert not cb._within_tolerance({"Col_obj": 0.33, "mean_objects": 3.0})  # more collisions
+    assert not cb._within_tolerance({"Col_obj": 0.30, "mean_objects": 2.4})  # emptied rooms
 
 
 def test_a_killed_run_resumes_from_its_last_checkpoint(tiny_run_config, tmp_path):
@@ -84,6 +122,12 @@ def test_bad_train_configs_are_clear(tmp_path, capsys):
     assert "unknown key 'epoch' (did you mean 'epochs'?)" in capsys.readouterr().err
     assert main(["train", "--config", str(tmp_path / "none.yaml")]) == 2
     assert "no config file" in capsys.readouterr().err
+    bad.write_text("best_tolerance: {Col_ob: 0.1}\n")
+    assert main(["train", "--config", str(bad)]) == 2
+    assert "best_tolerance: unknown metric 'Col_ob'; choose from Col_obj" in capsys.readouterr().err
+    bad.write_text("best_tolerance: {R_out: -1}\n")
+    assert main(["train", "--config", str(bad)]) == 2
+    assert "R_out must be a number >= 0" in capsys.readouterr().err
 
 
 @pytest.mark.parametrize("path", sorted((REPO / "experiments").rglob("*.yaml")), ids=lambda p: p.stem)
