@@ -53,20 +53,18 @@ def make_layout(objects, floor=((0, 0), (4, 0), (4, 3), (0, 3)), room="bedroom",
 L_SHAPE = ((0, 0), (4, 0), (4, 2), (2, 2), (2, 4), (0, 4))
 
 
-def perturb_zero_init(prior_path: Path, scale: float = 0.3) -> None:
-    """A freshly created prior is adaLN-zero: its blocks and output heads start at zero, so a LoRA adapter gets
-    no gradient. Fill those zero weights with noise (seeded) so that training moves the policy."""
+def perturb_zero_init(prior, seed: int = 0, scale: float = 0.05):
+    """A freshly created prior is adaLN-Zero: its modulation layers and output heads start at zero, so a LoRA
+    adapter gets no gradient. Fill those zero weight matrices with seeded noise so that training moves the
+    policy; returns the prior."""
     import torch
 
-    from agents.denoiser import ScenePrior
-
-    prior = ScenePrior.load(prior_path)
-    gen = torch.Generator().manual_seed(0)
+    g = torch.Generator().manual_seed(seed)
     with torch.no_grad():
-        for param in prior.denoiser.parameters():
-            if not param.any():
-                param.copy_(torch.randn(param.shape, generator=gen) * scale)
-    prior.save(prior_path)
+        for p in prior.denoiser.parameters():
+            if p.dim() == 2 and float(p.abs().sum()) == 0:
+                p.copy_(torch.randn(p.shape, generator=g) * scale)
+    return prior
 
 
 def write_tiny_train_config(tmp_path: Path, **settings) -> Path:

@@ -7,7 +7,7 @@ import torch
 from tensordict import TensorDict
 
 import iarcs_env  # noqa: F401
-from conftest import load_benchmark
+from conftest import load_benchmark, perturb_zero_init
 from agents.callbacks import CheckpointCallback, EvalCallback, StopTrainingOnRewardThreshold
 from agents.ddpo import DDPO, DDPOSF, get_algorithm
 from agents.denoiser import ScenePrior
@@ -22,13 +22,7 @@ FLOORS = [l.centred().floor for l in generate_layouts("bedroom", 8, seed=5)]
 def tiny_prior(seed=0):
     """A tiny untrained prior with its zero-initialised (adaLN-Zero) layers perturbed, so gradients flow."""
     torch.manual_seed(seed)
-    prior = ScenePrior.create("bedroom", default_stats("bedroom"), "tiny")
-    g = torch.Generator().manual_seed(seed)
-    with torch.no_grad():
-        for p in prior.denoiser.parameters():
-            if p.dim() == 2 and float(p.abs().sum()) == 0:
-                p.copy_(torch.randn(p.shape, generator=g) * 0.05)
-    return prior
+    return perturb_zero_init(ScenePrior.create("bedroom", default_stats("bedroom"), "tiny"), seed)
 
 
 def mean_x(scene):

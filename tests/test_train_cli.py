@@ -9,6 +9,7 @@ import time
 import pytest
 import yaml
 
+from agents.denoiser import ScenePrior
 from experiments.cli import main
 from conftest import REPO, perturb_zero_init, write_tiny_train_config
 
@@ -51,7 +52,7 @@ def test_best_tolerance_keeps_only_evaluations_close_to_the_start(tmp_path, caps
     tolerance = {"Col_obj": 0.0, "R_out": 0.0, "mean_objects": 0.0}
     config = write_tiny_train_config(tmp_path, epochs=6, export="best", best_tolerance=tolerance,
                                      ddpo={"samples_per_floor": 4, "minibatch_size": 8, "learning_rate": 0.01})
-    perturb_zero_init(tmp_path / "prior.pt")  # so that the evaluations move
+    perturb_zero_init(ScenePrior.load(tmp_path / "prior.pt"), scale=0.3).save(tmp_path / "prior.pt")  # so it learns
     assert main(["train", "--config", str(config)]) == 0
     run = tmp_path / "run"
     evals = [json.loads(l) for l in (run / "eval.jsonl").read_text().splitlines()]
