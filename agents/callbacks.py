@@ -18,7 +18,7 @@ BEST_FILE = "best.json"
 """Beside the best adapter kept by :class:`EvalCallback`: its epoch, the metric and its value."""
 
 LOWER_IS_BETTER = ("Col_obj", "Col_scene", "R_out", "R_off_floor")
-HIGHER_IS_BETTER = ("R_reach", "R_walkable", "mean_objects")
+HIGHER_IS_BETTER = ("R_reach", "R_walkable", "mean_objects", "mean_ground_objects")
 """The evaluation metrics a ``best_tolerance`` may guard, by the direction in which they improve."""
 
 

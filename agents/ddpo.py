@@ -298,8 +298,9 @@ class DDPO:
 
     @torch.no_grad()
     def evaluate(self, floors, seed: int = 0, n_render: int = 16, scene_metrics=None) -> dict[str, float]:
-        """Sample scenes on ``floors`` with the current adapter; metrics, objects per room (``mean_objects``:
-        a policy that empties the rooms shows there first) and reward, logged to TensorBoard.
+        """Sample scenes on ``floors`` with the current adapter; metrics, objects per room (``mean_objects``,
+        and ``mean_ground_objects`` without lamps: a policy that empties the rooms, or swaps furniture for
+        pendant lamps, shows there first) and reward, logged to TensorBoard.
         ``scene_metrics`` ``{name: f(SceneBatch) -> float}`` adds metrics (e.g. a task's success rate)."""
         from iarcs_env.env import evaluate_reward
         from iarcs_env.metrics import evaluate_layouts
@@ -308,7 +309,8 @@ class DDPO:
         scenes = self.policy.sample(floors, generator=torch.Generator().manual_seed(seed))
         layouts = scenes.to_layouts()
         metrics = {k: float(v) for k, v in evaluate_layouts(layouts).items()
-                   if k in ("Col_obj", "Col_scene", "R_out", "R_reach", "R_walkable", "R_off_floor", "mean_objects")}
+                   if k in ("Col_obj", "Col_scene", "R_out", "R_reach", "R_walkable", "R_off_floor", "mean_objects",
+                             "mean_ground_objects")}
         total, terms = evaluate_reward(self.venv.reward_fn, scenes)
         metrics["reward"] = float(total.mean())
         metrics.update({name: float(fn(scenes)) for name, fn in (scene_metrics or {}).items()})

@@ -215,7 +215,7 @@ def evaluate_layouts(layouts: Sequence[Layout], reference: Sequence[Layout] | No
 
     Returns a dict with ``Col_obj``, ``Col_scene``, ``R_out``, ``R_reach``, ``R_walkable`` and
     ``R_off_floor`` (fractions in [0, 1]) plus counts (``n_scenes``, ``n_objects``, ``n_ground_objects``),
-    ``mean_objects``, and
+    ``mean_objects`` and ``mean_ground_objects`` (per scene; the latter without ceiling and pendant lamps), and
     the grid settings. With a ``reference`` set: ``KL_class``, ``count_distance``,
     ``reference_mean_objects``; with ``features`` too (``"cnn"`` or ``"clip:PATH"``, see
     :mod:`iarcs_env.distribution`): ``FID``, ``KID``, ``SCA`` and ``feature_extractor``. With
@@ -259,6 +259,7 @@ def evaluate_layouts(layouts: Sequence[Layout], reference: Sequence[Layout] | No
         "n_objects": totals["objects"],
         "n_ground_objects": totals["ground"],
         "mean_objects": totals["objects"] / n,
+        "mean_ground_objects": totals["ground"] / n,
         "room_type": get_room(layouts[0].room_type).name,
         "cell": cell,
         "agent_radius": agent_radius,

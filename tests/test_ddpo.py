@@ -182,7 +182,8 @@ def test_callbacks_stop_and_log_to_tensorboard(tmp_path):
     acc = EventAccumulator(str(tmp_path / "tb"), size_guidance={"images": 4}).Reload()
     scalars = acc.Tags()["scalars"]
     for tag in ("rollout/reward_mean", "rollout/reward_x", "train/approx_kl", "train/clip_fraction",
-                "train/learning_rate", "eval/Col_obj", "eval/R_out", "eval/mean_objects"):
+                "train/learning_rate", "eval/Col_obj", "eval/R_out", "eval/mean_objects",
+                "eval/mean_ground_objects"):
         assert tag in scalars, tag
     assert acc.Scalars("rollout/reward_mean")[0].value == pytest.approx(seen[0])
     assert "eval/scenes" in acc.Tags()["images"] and acc.Tags()["tensors"]  # render grid, hyper-parameters text

@@ -61,6 +61,7 @@ def test_lamp_inside_a_bed_box_is_not_a_collision():
     assert not r.colliding.any()
     out = evaluate_layouts([make_layout([bed, lamp])])
     assert out["Col_obj"] == 0 and out["n_ground_objects"] == 1 and out["n_objects"] == 2
+    assert out["mean_objects"] == 2 and out["mean_ground_objects"] == 1  # the lamp is no furniture
 
 
 # --- out of bound -------------------------------------------------------------------------------------
