@@ -19,7 +19,8 @@ BEST_FILE = "best.json"
 
 LOWER_IS_BETTER = ("Col_obj", "Col_scene", "R_out", "R_off_floor")
 HIGHER_IS_BETTER = ("R_reach", "R_walkable", "mean_objects", "mean_ground_objects")
-"""The evaluation metrics a ``best_tolerance`` may guard, by the direction in which they improve."""
+"""The scene metrics of a training evaluation (``DDPO.evaluate``), by the direction in which they improve;
+``best_tolerance`` may guard any of them."""
 
 
 def check_best_tolerance(tolerance: dict) -> dict[str, float]:

@@ -22,7 +22,7 @@ import numpy as np
 import torch
 from tensordict import TensorDict
 
-from .callbacks import as_callback, render_grid_tensor
+from .callbacks import HIGHER_IS_BETTER, LOWER_IS_BETTER, as_callback, render_grid_tensor
 from .policy import DiffusionPolicy
 
 
@@ -308,9 +308,8 @@ class DDPO:
 
         scenes = self.policy.sample(floors, generator=torch.Generator().manual_seed(seed))
         layouts = scenes.to_layouts()
-        metrics = {k: float(v) for k, v in evaluate_layouts(layouts).items()
-                   if k in ("Col_obj", "Col_scene", "R_out", "R_reach", "R_walkable", "R_off_floor", "mean_objects",
-                             "mean_ground_objects")}
+        measured = evaluate_layouts(layouts)
+        metrics = {k: float(measured[k]) for k in LOWER_IS_BETTER + HIGHER_IS_BETTER}
         total, terms = evaluate_reward(self.venv.reward_fn, scenes)
         metrics["reward"] = float(total.mean())
         metrics.update({name: float(fn(scenes)) for name, fn in (scene_metrics or {}).items()})
