@@ -36,6 +36,10 @@ batch's device. They are registered by name in :data:`REWARDS` (add your own wit
   batch, which the per-floor advantage normalisation removes) it is the per-scene score whose policy
   gradient descends that KL: a class rarer in the batch than in the data pays for being present, a class
   rarer in the data pays for being absent, and every term is 0 once the batch has the training rates.
+  ``mode="absence"`` keeps only the log-likelihood's price of a missing class, sum_c (1 - x_c) log(1 - p_c):
+  a bedroom without a bed costs log(1 - 0.86) = -2.0, one without a TV stand log(1 - 0.19) = -0.2, and no
+  class ever pays for being present, so the rare classes that the log-likelihood removes (TV stands, desks:
+  the objects of the stage-2 tasks) are not pushed out.
   Presence alone leaves the number of objects of a class free: with ``object_count`` in ``"match"`` mode
   stage 1 filled rooms with pendant lamps (they never collide; 0.60 -> 1.30 per room).
 * ``class_frequency`` (our addition): per scene, sum over its objects of log(f_c / g_c), f_c the share of
@@ -174,10 +178,11 @@ def class_presence_reward(batch: SceneBatch, stats: DatasetStats | None = None, 
                           mode: str = "log_prob", eps: float = 1e-3) -> torch.Tensor:
     """Class-presence prior: the training log-likelihood of the set of classes in each scene (a product of
     one Bernoulli per class, with the training rooms' presence rates ``class_presence`` or
-    ``stats.class_presence``; ``mode="log_prob"``), or its rate-matching score against the batch's own
-    presence rates (``mode="match"``; module doc)."""
-    if mode not in ("log_prob", "match"):
-        raise ValueError(f"class_presence mode must be 'log_prob' or 'match', not {mode!r}")
+    ``stats.class_presence``; ``mode="log_prob"``), its part for the classes missing from the scene
+    (``mode="absence"``), or its rate-matching score against the batch's own presence rates
+    (``mode="match"``; module doc)."""
+    if mode not in ("log_prob", "absence", "match"):
+        raise ValueError(f"class_presence mode must be 'log_prob', 'absence' or 'match', not {mode!r}")
     if class_presence is None:
         if stats is None or not stats.class_presence:
             raise ValueError("the class_presence reward needs each class's presence rate in the training rooms: "
@@ -189,6 +194,8 @@ def class_presence_reward(batch: SceneBatch, stats: DatasetStats | None = None, 
     if mode == "match":
         q = present.mean(0).clamp(eps, 1 - eps)
         return (present * (p / q).log() + (1 - present) * ((1 - p) / (1 - q)).log()).sum(1)
+    if mode == "absence":
+        return ((1 - present) * (1 - p).log()).sum(1)
     return (present * p.log() + (1 - present) * (1 - p).log()).sum(1)
 
 
