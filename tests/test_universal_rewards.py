@@ -104,7 +104,8 @@ def test_class_presence_prior_is_the_bernoulli_log_likelihood_of_the_classes_pre
     assert own[0] == pytest.approx(own[1].item(), abs=1e-5)  # bed 50/50, nightstand unknown = rare
     # absence mode: only the missing classes' log(1 - p); a present class, however rare, costs nothing
     gone = class_presence_reward(scenes, stats=stats, eps=1e-3, mode="absence")
-    np.testing.assert_allclose(gone.numpy(), np.array([0.0, np.log(0.25), np.log(1e-3)]) + absent, rtol=1e-5, atol=1e-5)
+    np.testing.assert_allclose(gone.numpy(), np.array([0.0, np.log(0.25), np.log(1e-3)]) + absent,
+                               rtol=1e-5, atol=1e-5)
     with_rare = make_layout([bed, stand, box("tv_stand", -1.5, 0.0, 0.6, 0.2)])  # a class no training room has
     assert class_presence_reward(SceneBatch.from_layouts([with_rare], num_slots=12), stats=stats,
                                  mode="absence")[0] == pytest.approx(gone[0].item() - np.log(1 - 1e-3), abs=1e-5)
