@@ -100,6 +100,10 @@ class PretrainConfig:
     """torch CPU threads (0: torch's default)."""
     tensorboard: bool = True
     """Write TensorBoard scalars to ``out/tb``."""
+    init_from: str = ""
+    """Fine-tune: a fresh run starts from the weights and feature scaling of this scene-prior checkpoint
+    (``default``: the shipped prior of ``room``) instead of a random initialisation, e.g. the procedural prior
+    on real rooms. Its architecture must be the one ``preset`` and ``model`` describe. A resumed run ignores it."""
 
     def __post_init__(self):
         get_room(self.room)
@@ -249,6 +253,28 @@ class TrainResult:
     seconds: float = 0.0
 
 
+def load_init_prior(cfg: PretrainConfig) -> ScenePrior:
+    """The checkpoint ``cfg.init_from`` names, checked to fit the run's room and architecture."""
+    where = f"init_from {cfg.init_from!r}"
+    if cfg.init_from == "default":
+        prior = ScenePrior.load_default(cfg.room)
+    else:
+        path = Path(cfg.init_from).expanduser()
+        if not path.is_absolute() and not path.exists():
+            path = REPO_ROOT / path
+        prior = ScenePrior.load(path)
+    if prior.spec.name != get_room(cfg.room).name:
+        raise ValueError(f"{where} is a {prior.spec.name} prior, but this run trains a {cfg.room} prior: "
+                         "initialise from a prior of the same room type")
+    want = cfg.denoiser_config()
+    if prior.denoiser.config != want:
+        diff = {k: (getattr(prior.denoiser.config, k), getattr(want, k)) for k in asdict(want)
+                if getattr(prior.denoiser.config, k) != getattr(want, k)}
+        raise ValueError(f"{where} has another architecture than preset {cfg.preset!r} with model {dict(cfg.model)} "
+                         f"(checkpoint vs config: {diff}); set preset/model to the checkpoint's")
+    return prior
+
+
 def lr_at(step: int, cfg: PretrainConfig) -> float:
     """Linear warm-up then cosine decay to ``lr * min_lr_ratio``."""
     if cfg.warmup_steps > 0 and step < cfg.warmup_steps:
@@ -284,6 +310,7 @@ def train(cfg: PretrainConfig, layouts: Sequence[Layout] | None = None, max_step
     if resume and state_path.exists():
         saved = torch.load(state_path, map_location="cpu", weights_only=True)
         _check_resumable(saved["config"], cfg, state_path)
+    init = load_init_prior(cfg) if saved is None and cfg.init_from else None
 
     # data
     if layouts is None:
@@ -303,6 +330,9 @@ def train(cfg: PretrainConfig, layouts: Sequence[Layout] | None = None, max_step
     else:
         stats = stats_for_training(train_layouts, spec.name, cfg.rotation_augment)
         stats.translation_frame = "room" if cfg.denoiser_config().room_frame else "dataset"
+        if init is not None:  # the network's inputs keep the scaling it was trained with
+            for name in ("bounds_translations", "bounds_sizes", "bounds_angles", "translation_frame"):
+                setattr(stats, name, copy.deepcopy(getattr(init.stats, name)))
         stats.save(out / "dataset_stats.json")
         _write_yaml(out / "config.yaml", asdict(cfg))
     data = SceneTensors.from_layouts(train_layouts, spec.max_objects)
@@ -316,6 +346,9 @@ def train(cfg: PretrainConfig, layouts: Sequence[Layout] | None = None, max_step
     if cfg.translation_weight != 1.0:
         weights = torch.ones(spec.feature_dim)
         weights[[0, 2]] = cfg.translation_weight  # translation x, z (y is the height)
+    if init is not None:
+        net.load_state_dict(init.denoiser.state_dict())
+        log(f"initialised from {cfg.init_from}")
     ema = copy.deepcopy(net).eval().requires_grad_(False)
     opt = torch.optim.AdamW(net.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
     gen = torch.Generator().manual_seed(cfg.seed + 1)

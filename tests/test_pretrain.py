@@ -177,6 +177,29 @@ def test_interrupted_run_resumes_where_it_stopped(tmp_path):
         train(cfg, rooms, **quiet)
 
 
+def test_fine_tuning_starts_from_the_init_prior(tmp_path):
+    quiet = dict(progress=False, log=lambda m: None)
+    base = train(tiny_config(tmp_path / "base", steps=60), toy_bedrooms(80), **quiet)
+    init = ScenePrior.load(tmp_path / "base" / "run" / PRIOR_FILE)
+    # other rooms (another seed, larger): fine-tuning keeps the init's feature scaling, takes the new rooms'
+    # class and count statistics, and starts at the init's validation loss, not at a random network's
+    other = [l.rotated(math.pi / 2) for l in toy_bedrooms(80, seed=5)]
+    tuned_cfg = tiny_config(tmp_path / "tuned", steps=1, eval_every=1, log_every=1, lr=1e-12, warmup_steps=0,
+                            init_from=str(tmp_path / "base" / "run" / PRIOR_FILE))
+    tuned = train(tuned_cfg, other, **quiet)
+    scratch = train(tiny_config(tmp_path / "scratch", steps=1, eval_every=1, log_every=1), other, **quiet)
+    stats = json.loads((tmp_path / "tuned" / "run" / "dataset_stats.json").read_text())
+    assert stats["bounds_translations"] == pytest.approx(init.stats.bounds_translations)
+    assert stats["bounds_sizes"] == pytest.approx(init.stats.bounds_sizes)
+    assert tuned.val_losses[0][1] < 0.7 * scratch.val_losses[0][1]
+    assert tuned.val_losses[0][1] == pytest.approx(base.val_losses[-1][1], rel=0.5)
+    # a prior of another room or architecture is refused with what to change
+    with pytest.raises(ValueError, match="another architecture"):
+        train(tiny_config(tmp_path / "bad", model={"width": 64}, init_from=tuned_cfg.init_from), other, **quiet)
+    with pytest.raises(ValueError, match="same room type"):
+        train(tiny_config(tmp_path / "bad2", room="livingroom", init_from=tuned_cfg.init_from), [], **quiet)
+
+
 def test_cli_pretrain_and_sample(tmp_path, capsys):
     from experiments.cli import main
 
