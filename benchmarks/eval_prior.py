@@ -21,7 +21,9 @@ measures where the placement error arises: the reference rooms are noised to x_t
 grid, e.g. 50 200 950) and denoised by the prior for the rest of the rollout; the metrics of the result
 say whether the prior can restore a real layout from that noise level. ``--collision-pairs`` lists which
 class pairs collide (and the overlap volumes) in the reference and in the samples of the first eta: it
-tells collisions the data has too (a nightstand tucked against a bed) from gross placement errors. Nothing is written into the repository unless
+tells collisions the data has too (a nightstand tucked against a bed) from gross placement errors.
+``--tasks`` adds the five paper tasks' checker success rates to every row (with ``--denoise-from``: at which
+noise level the relations the tasks test are lost). Nothing is written into the repository unless
 ``--json`` / ``--markdown`` point there; real rooms are only read.
 """
 
@@ -47,6 +49,7 @@ from iarcs_env.datasets.realism import count_tvd  # noqa: E402
 from iarcs_env.geometry import COLLISION_VOLUME, box_overlap_volumes  # noqa: E402
 from iarcs_env.metrics import evaluate_layouts  # noqa: E402
 from iarcs_env.scene import SceneBatch  # noqa: E402
+from iarcs_env.tasks import TASKS, task_success  # noqa: E402
 
 KEYS = ("Col_obj", "Col_scene", "R_out", "R_reach", "R_walkable", "mean_objects")
 
@@ -106,7 +109,8 @@ def floor_usage(prior: ScenePrior, reference: list, gen: list | None = None) -> 
 
 
 @torch.no_grad()
-def denoise_from(prior: ScenePrior, reference: list, starts, seed: int = 0, num_steps: int = 20) -> dict:
+def denoise_from(prior: ScenePrior, reference: list, starts, seed: int = 0, num_steps: int = 20,
+                 tasks: bool = False) -> dict:
     """Metrics of the reference rooms noised to each t in ``starts`` and denoised by the prior (DDIM, eta 1)."""
     from agents.pretrain import SceneTensors, encode_batch
     from iarcs_env.scene import SceneBatch
@@ -125,8 +129,23 @@ def denoise_from(prior: ScenePrior, reference: list, starts, seed: int = 0, num_
         for t in grid[grid.index(start):]:
             tt = torch.full((x.shape[0],), t)
             x = schedule.step(fn(x, tt), tt, x, eta=1.0, generator=g).prev_sample
-        out[f"from t = {start}"] = evaluate_layouts(SceneBatch.decode(x, prior.stats, floors).to_layouts())
+        layouts = SceneBatch.decode(x, prior.stats, floors).to_layouts()
+        out[f"from t = {start}"] = evaluate_layouts(layouts)
+        if tasks:
+            add_task_success(out[f"from t = {start}"], layouts)
     return out
+
+
+def add_task_success(row: dict, layouts: list) -> None:
+    """``row["tasks"]``: checker success rate of each paper task on ``layouts``."""
+    row["tasks"] = {name: task_success(name, layouts) for name in TASKS}
+
+
+def task_table(rows: dict) -> str:
+    lines = ["| scenes | " + " | ".join(TASKS) + " |", "|---|" + "---:|" * len(TASKS)]
+    lines += [f"| {name} | " + " | ".join(f"{100 * r['tasks'][t]:.1f}" for t in TASKS) + " |"
+              for name, r in rows.items() if "tasks" in r]
+    return "\n".join(lines)
 
 
 def table(rows: dict) -> str:
@@ -172,6 +191,7 @@ def main(argv=None) -> int:
     p.add_argument("--denoise-from", type=int, nargs="*", default=[],
                    help="also denoise the reference rooms from these noise levels t (DDIM grid), e.g. 50 200 950")
     p.add_argument("--collision-pairs", action="store_true", help="also list the colliding class pairs")
+    p.add_argument("--tasks", action="store_true", help="also report the five paper tasks' success rates")
     p.add_argument("--json", default=None)
     args = p.parse_args(argv)
     torch.set_num_threads(args.threads)
@@ -185,6 +205,12 @@ def main(argv=None) -> int:
     print(f"{args.checkpoint} (step {prior.meta.get('step')}) vs {args.reference} "
           f"(seed {args.data_seed}, {len(ref)} rooms)")
     print(table(rows))
+    if args.tasks:
+        add_task_success(rows["reference"], ref)
+        for eta, gen in evaluate.last_generated.items():
+            add_task_success(rows[f"prior, eta = {eta:g}"], gen)
+        print("task success %:")
+        print(task_table(rows))
     if args.floor_usage:
         gen = evaluate.last_generated[args.eta[0]]
         rows["floor_usage"] = floor_usage(prior, [lay for lay in ref if len(lay) <= prior.num_slots],
@@ -192,9 +218,11 @@ def main(argv=None) -> int:
         print("floor usage:", {k: round(v, 4) for k, v in rows["floor_usage"].items()})
     if args.denoise_from:
         rows["denoised_reference"] = denoise_from(prior, [lay for lay in ref if len(lay) <= prior.num_slots],
-                                                  args.denoise_from, args.seed, args.steps)
+                                                  args.denoise_from, args.seed, args.steps, args.tasks)
         print("reference rooms noised to t and denoised by the prior:")
         print(table(rows["denoised_reference"]))
+        if args.tasks:
+            print(task_table(rows["denoised_reference"]))
     if args.collision_pairs:
         rows["collision_pairs"] = {"reference": collision_pairs(ref),
                                    "prior": collision_pairs(evaluate.last_generated[args.eta[0]])}

@@ -210,6 +210,20 @@ def test_eval_prior_lists_the_colliding_class_pairs_with_their_overlap():
     assert script.collision_pairs([clear])["pairs"] == 0
 
 
+def test_eval_prior_reports_task_success_per_row():
+    """benchmarks/eval_prior.py --tasks: each row gets the five checkers' rates, printed in percent."""
+    script = load_benchmark("eval_prior")
+    low = make_layout([box("double_bed", 1.5, 1.5, 1.0, 1.0, hy=0.3)])        # top at 0.6 m: reach_1m holds
+    high = make_layout([box("wardrobe", 1.5, 0.4, 0.5, 0.3, hy=1.0)])         # top at 2.0 m: it does not
+    rows = {"two rooms": {}, "untested": {}}
+    script.add_task_success(rows["two rooms"], [low, high])
+    assert set(rows["two rooms"]["tasks"]) == {"reach_1m", "tv_from_bed", "study_zone", "two_nightstands",
+                                               "wheelchair"}
+    assert rows["two rooms"]["tasks"]["reach_1m"] == 0.5 and rows["two rooms"]["tasks"]["tv_from_bed"] == 0.0
+    table = script.task_table(rows).splitlines()
+    assert len(table) == 3 and table[2].startswith("| two rooms | 50.0 | 0.0 |")
+
+
 def test_class_counts_per_room_and_rooms_with_a_bed(tmp_path, capsys):
     """benchmarks/class_counts.py: what a run added or removed, class by class."""
     from iarcs_env.datasets import save_layouts

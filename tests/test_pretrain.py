@@ -177,6 +177,24 @@ def test_interrupted_run_resumes_where_it_stopped(tmp_path):
         train(cfg, rooms, **quiet)
 
 
+def test_low_noise_fine_tune_trains_only_below_max_timestep(tmp_path, monkeypatch):
+    from iarcs_env.schedule import NoiseSchedule
+
+    seen = []
+    original = NoiseSchedule.training_loss
+
+    def spy(self, model_fn, x0, generator=None, t=None, **kw):
+        if t is not None and torch.is_grad_enabled():
+            seen.append(t.clone())
+        return original(self, model_fn, x0, generator, t=t, **kw)
+
+    monkeypatch.setattr(NoiseSchedule, "training_loss", spy)
+    train(tiny_config(tmp_path, steps=5, max_timestep=40), toy_bedrooms(40), progress=False, log=lambda m: None)
+    assert len(seen) == 5 and all(int(t.max()) < 40 for t in seen)
+    with pytest.raises(ValueError, match="max_timestep"):
+        tiny_config(tmp_path, max_timestep=1001)
+
+
 def test_fine_tuning_starts_from_the_init_prior(tmp_path):
     quiet = dict(progress=False, log=lambda m: None)
     base = train(tiny_config(tmp_path / "base", steps=60), toy_bedrooms(80), **quiet)
