@@ -224,6 +224,23 @@ def test_eval_prior_reports_task_success_per_row():
     assert len(table) == 3 and table[2].startswith("| two rooms | 50.0 | 0.0 |")
 
 
+def test_eval_prior_position_errors_match_slots_of_the_same_class():
+    """benchmarks/eval_prior.py --denoise-from: how far restored objects are from the originals."""
+    from iarcs_env.scene import SceneBatch
+
+    script = load_benchmark("eval_prior")
+    bed, stand = box("double_bed", 1.5, 1.5, 1.0, 1.0), box("nightstand", 2.8, 1.5, 0.25, 0.25)
+    original = SceneBatch.from_layouts([make_layout([bed, stand])])
+    moved = SceneBatch.from_layouts([make_layout([box("double_bed", 1.5, 1.6, 1.0, 1.0),
+                                                  box("nightstand", 2.5, 1.1, 0.25, 0.25)])])
+    err = script.position_errors(moved, original)
+    assert err["bed"] == pytest.approx(0.1, abs=1e-5) and err["nightstand"] == pytest.approx(0.5, abs=1e-5)
+    assert err["all"] == pytest.approx(0.1, abs=1e-5)  # the lower median of the two
+    relabelled = SceneBatch.from_layouts([make_layout([bed, box("wardrobe", 2.5, 1.1, 0.25, 0.25)])])
+    err = script.position_errors(relabelled, original)  # a slot whose class changed is not compared
+    assert err["bed"] == pytest.approx(0.0, abs=1e-6) and np.isnan(err["nightstand"])
+
+
 def test_class_counts_per_room_and_rooms_with_a_bed(tmp_path, capsys):
     """benchmarks/class_counts.py: what a run added or removed, class by class."""
     from iarcs_env.datasets import save_layouts
