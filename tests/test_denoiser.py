@@ -9,6 +9,7 @@ import pytest
 import torch
 from torch import nn
 
+import agents.denoiser as denoiser_module
 from agents.denoiser import (DenoiserConfig, SceneDenoiser, ScenePrior, atomic_torch_save,
                              timestep_embedding)
 from iarcs_env import FloorPlan, get_room
@@ -313,7 +314,7 @@ def test_save_load_round_trip_gives_identical_samples(tmp_path):
     assert (tmp_path / "half.pt").stat().st_size < 0.7 * path.stat().st_size
 
 
-def test_load_rejects_other_files_clearly(tmp_path):
+def test_load_rejects_other_files_clearly(tmp_path, monkeypatch):
     with pytest.raises(FileNotFoundError, match="no scene-prior checkpoint"):
         ScenePrior.load(tmp_path / "missing.pt")
     atomic_torch_save({"step": 3}, tmp_path / "state.pt")
@@ -322,7 +323,8 @@ def test_load_rejects_other_files_clearly(tmp_path):
     (tmp_path / "junk.pt").write_text("not a checkpoint")
     with pytest.raises(ValueError, match="not a readable"):
         ScenePrior.load(tmp_path / "junk.pt")
-    with pytest.raises(FileNotFoundError, match="iarcs pretrain"):
+    monkeypatch.setattr(denoiser_module, "CHECKPOINT_DIR", tmp_path)  # an installation without shipped priors
+    with pytest.raises(FileNotFoundError, match="iarcs pretrain --config experiments/pretrain_diningroom.yaml"):
         ScenePrior.load_default("diningroom")
     # weights that do not fit the config (e.g. from an incompatible iARCS version): a clear error
     state = _tiny_prior().state()
@@ -345,7 +347,7 @@ def test_checkpoints_without_the_floor_options_load_as_the_original_design(tmp_p
     assert loaded.denoiser.config == prior.denoiser.config
 
 
-@pytest.mark.parametrize("room, anchor", [("bedroom", "bed"), ("livingroom", "sofa")])
+@pytest.mark.parametrize("room, anchor", [("bedroom", "bed"), ("livingroom", "sofa"), ("diningroom", "dining_table")])
 def test_shipped_prior_loads_and_samples_valid_scenes(room, anchor):
     path = ScenePrior.default_path(room)
     if not path.exists():
@@ -368,7 +370,7 @@ def test_shipped_prior_loads_and_samples_valid_scenes(room, anchor):
     assert torch.cat(inside).float().mean() > 0.8  # object centres near or inside the floor's bounding box
 
 
-@pytest.mark.parametrize("room", ["bedroom", "livingroom"])
+@pytest.mark.parametrize("room", ["bedroom", "livingroom", "diningroom"])
 def test_environment_default_stats_are_the_shipped_priors(room):
     from pathlib import Path
 
