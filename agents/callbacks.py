@@ -4,6 +4,7 @@ hooks; ``_on_step`` (called after every epoch of rollouts and updates) returns F
 from __future__ import annotations
 
 import json
+import sys
 from pathlib import Path
 from typing import TYPE_CHECKING, Sequence
 
@@ -39,6 +40,25 @@ def worsening(metrics: dict, start: dict, name: str) -> float:
     """How much worse ``name`` is in ``metrics`` than in ``start`` (negative when it improved)."""
     change = metrics[name] - start[name]
     return change if name in LOWER_IS_BETTER else -change
+
+
+#: The furniture-loss warning fires when furniture per room falls below this share of the first evaluation's.
+FURNITURE_KEPT_WARNING = 0.5
+
+
+def furniture_loss_warning(first: dict, now: dict) -> str | None:
+    """A warning when ground objects per room (``mean_ground_objects``: furniture, lamps excluded) fell below
+    :data:`FURNITURE_KEPT_WARNING` of the first logged evaluation's, else None. Collisions, out-of-bound
+    objects and blocked paths all vanish with the furniture, so every physical reward can be won by
+    emptying the room (docs/results/stage1_bedroom_quick.md)."""
+    before, after = first.get("mean_ground_objects"), now.get("mean_ground_objects")
+    if before is None or after is None or before <= 0 or after >= FURNITURE_KEPT_WARNING * before:
+        return None
+    return (f"warning: furniture per room fell from {before:.2f} (epoch {first.get('epoch', '?')}) to {after:.2f} "
+            f"(epoch {now.get('epoch', '?')}): the policy is emptying the rooms, which wins the collision, boundary "
+            "and accessibility rewards without placing anything better. Add a class term to the reward "
+            "(class_presence), or keep the exported adapter from doing so with best_tolerance: "
+            "{mean_ground_objects: ...} (docs/results/stage1_bedroom_quick.md)")
 
 
 class BaseCallback:
@@ -186,6 +206,9 @@ class EvalCallback(BaseCallback):
         self.best_tolerance = check_best_tolerance(best_tolerance or {})
         self.start: dict | None = None
         """The starting adapter's evaluation, the reference of ``best_tolerance``."""
+        self.first_eval: dict | None = None
+        self.warned_furniture = False
+        """Whether the furniture-loss warning (:func:`furniture_loss_warning`) was printed."""
 
     def _on_training_start(self) -> None:
         if not self.best_tolerance:
@@ -215,6 +238,15 @@ class EvalCallback(BaseCallback):
                 f.write(json.dumps({"epoch": self.model.epoch, "num_timesteps": self.num_timesteps, **metrics}) + "\n")
         if self.verbose:
             print(f"eval at epoch {self.model.epoch}: " + ", ".join(f"{k}={v:.4g}" for k, v in metrics.items()))
+        now = {"epoch": self.model.epoch, **metrics}
+        if self.first_eval is None:  # the run's first evaluation: the log's first row when resumed
+            logged = self._logged()
+            self.first_eval = logged[0] if logged else now
+        if not self.warned_furniture:
+            message = furniture_loss_warning(self.first_eval, now)
+            if message:
+                print(message, file=sys.stderr)
+                self.warned_furniture = True
         return metrics
 
     def _logged(self) -> list[dict]:

@@ -86,6 +86,16 @@ def test_best_tolerance_directions():
     assert not cb._within_tolerance({"Col_obj": 0.30, "mean_objects": 2.4})  # emptied rooms
 
 
+def test_emptied_rooms_raise_one_clear_warning():
+    from agents.callbacks import furniture_loss_warning
+
+    first = {"epoch": 20, "mean_ground_objects": 2.53}
+    assert furniture_loss_warning(first, {"epoch": 100, "mean_ground_objects": 1.72}) is None   # 68% kept
+    message = furniture_loss_warning(first, {"epoch": 200, "mean_ground_objects": 0.61})
+    assert "from 2.53 (epoch 20) to 0.61 (epoch 200)" in message and "class_presence" in message
+    assert furniture_loss_warning({"epoch": 0}, {"epoch": 5, "mean_ground_objects": 0.0}) is None  # older logs
+
+
 def test_a_killed_run_resumes_from_its_last_checkpoint(tiny_run_config, tmp_path):
     cfg = yaml.safe_load(tiny_run_config.read_text())
     cfg["epochs"], cfg["eval_every"] = 100000, 100000
