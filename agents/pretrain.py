@@ -413,8 +413,8 @@ def train(cfg: PretrainConfig, layouts: Sequence[Layout] | None = None, max_step
             lr = lr_at(step, cfg)
             for group in opt.param_groups:
                 group["lr"] = lr
-            t = (torch.randint(0, cfg.max_timestep, (x0.shape[0],), generator=gen) if cfg.max_timestep else None)
-            loss = schedule.training_loss(lambda x, t: net(x, t, floor), x0, gen, t=t, feature_weights=weights)
+            low_t = torch.randint(0, cfg.max_timestep, (x0.shape[0],), generator=gen) if cfg.max_timestep else None
+            loss = schedule.training_loss(lambda x, t: net(x, t, floor), x0, gen, t=low_t, feature_weights=weights)
             opt.zero_grad(set_to_none=True)
             loss.backward()
             grad_norm = torch.nn.utils.clip_grad_norm_(net.parameters(), cfg.grad_clip if cfg.grad_clip > 0 else

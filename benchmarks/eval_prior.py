@@ -20,9 +20,10 @@ translation x, z features alone at t = 10, 50, 100, 300 with each of the three f
 measures where the placement error arises: the reference rooms are noised to x_t (t on the 20-step DDIM
 grid, e.g. 50 200 950) and denoised by the prior for the rest of the rollout; the metrics of the result
 say whether the prior can restore a real layout from that noise level, and the median distance between
-each restored object and its original says how precisely (from t = 50 the rollout is one step: x0_hat). ``--collision-pairs`` lists which
-class pairs collide (and the overlap volumes) in the reference and in the samples of the first eta: it
-tells collisions the data has too (a nightstand tucked against a bed) from gross placement errors.
+each restored object and its original says how precisely (from t = 50 the rollout is one step: x0_hat).
+``--collision-pairs`` lists which class pairs collide (and the overlap volumes) in the reference and in
+the samples of the first eta: it tells collisions the data has too (a nightstand tucked against a bed)
+from gross placement errors.
 ``--tasks`` adds the five paper tasks' checker success rates to every row (with ``--denoise-from``: at which
 noise level the relations the tasks test are lost). Nothing is written into the repository unless
 ``--json`` / ``--markdown`` point there; real rooms are only read.
