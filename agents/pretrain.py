@@ -118,9 +118,9 @@ class PretrainConfig:
             raise ValueError(f"translation_weight must be positive, got {self.translation_weight}")
         if not 0 <= self.cond_drop_prob < 1:
             raise ValueError(f"cond_drop_prob must be in [0, 1), got {self.cond_drop_prob}")
-        if not 0 <= self.max_timestep <= NoiseSchedule().num_train_timesteps:
-            raise ValueError(f"max_timestep must be in [0, {NoiseSchedule().num_train_timesteps}] (0: all), got "
-                             f"{self.max_timestep}")
+        num_t = NoiseSchedule().num_train_timesteps
+        if not 0 <= self.max_timestep <= num_t:
+            raise ValueError(f"max_timestep must be in [0, {num_t}] (0: all), got {self.max_timestep}")
         if not 0 <= self.ema_decay < 1:
             raise ValueError(f"ema_decay must be in [0, 1), got {self.ema_decay}")
 

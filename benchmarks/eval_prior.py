@@ -114,13 +114,14 @@ def floor_usage(prior: ScenePrior, reference: list, gen: list | None = None) -> 
 @torch.no_grad()
 def denoise_from(prior: ScenePrior, reference: list, starts, seed: int = 0, num_steps: int = 20,
                  tasks: bool = False) -> dict:
-    """Metrics of the reference rooms noised to each t in ``starts`` and denoised by the prior (DDIM, eta 1)."""
+    """Metrics of the reference rooms noised to each t in ``starts`` and denoised by the prior (DDIM, eta 1),
+    with the position errors of the noised and of the denoised objects (and the tasks' success rates)."""
     from agents.pretrain import SceneTensors, encode_batch
-    from iarcs_env.scene import SceneBatch
 
     data = SceneTensors.from_layouts(reference, prior.num_slots)
     x0, floor = encode_batch(prior.spec, prior.stats, *data.batch(torch.arange(len(data))))
     floors = [lay.centred().floor for lay in reference]
+    original = SceneBatch.decode(x0, prior.stats, floors)
     schedule, fn = prior.schedule, prior.model_fn(floor.to(prior.device))
     grid = schedule.set_timesteps(num_steps).tolist()
     out = {}
@@ -135,12 +136,11 @@ def denoise_from(prior: ScenePrior, reference: list, starts, seed: int = 0, num_
             x = schedule.step(fn(x, tt), tt, x, eta=1.0, generator=g).prev_sample
         result = SceneBatch.decode(x, prior.stats, floors)
         layouts = result.to_layouts()
-        out[f"from t = {start}"] = evaluate_layouts(layouts)
-        original = SceneBatch.decode(x0, prior.stats, floors)
-        out[f"from t = {start}"]["position_error_m"] = position_errors(result, original)
-        out[f"from t = {start}"]["position_error_noised_m"] = position_errors(noised, original)
+        row = out[f"from t = {start}"] = evaluate_layouts(layouts)
+        row["position_error_m"] = position_errors(result, original)
+        row["position_error_noised_m"] = position_errors(noised, original)
         if tasks:
-            add_task_success(out[f"from t = {start}"], layouts)
+            add_task_success(row, layouts)
     return out
 
 
