@@ -18,7 +18,7 @@ if TYPE_CHECKING:
 BEST_FILE = "best.json"
 """Beside the best adapter kept by :class:`EvalCallback`: its epoch, the metric and its value."""
 
-LOWER_IS_BETTER = ("Col_obj", "Col_scene", "R_out", "R_off_floor")
+LOWER_IS_BETTER = ("Col_obj", "Col_scene", "R_out", "R_off_floor", "R_misaligned")
 HIGHER_IS_BETTER = ("R_reach", "R_walkable", "mean_objects", "mean_ground_objects")
 """The scene metrics of a training evaluation (``DDPO.evaluate``), by the direction in which they improve;
 ``best_tolerance`` may guard any of them."""

@@ -56,6 +56,8 @@ WALK_CELL = 0.05
 AGENT_RADIUS = 0.3
 #: Floor contact (our addition): a ground object stands on the floor when its bottom is within this of y = 0 (m).
 FLOOR_CONTACT_TOL = 0.05
+#: Wall alignment (our addition): a ground object is aligned when its axes are within this of a wall's (degrees).
+ALIGNMENT_TOL_DEG = 10.0
 
 _BIG = 1e9
 
@@ -66,6 +68,22 @@ def floor_gaps(translations: torch.Tensor, half_sizes: torch.Tensor, ground: tor
     0.09 m of it, 99.6% within 0.03 m)."""
     bottoms = translations[..., 1] - half_sizes[..., 1]
     return torch.where(ground, bottoms.abs(), torch.zeros_like(bottoms))
+
+
+def wall_misalignment(yaws: torch.Tensor, floors: Sequence[FloorPlan], ground: torch.Tensor) -> torch.Tensor:
+    """(B, N) angle (degrees, in [0, 45]) between each ground object's axes and the nearest wall direction of
+    its floor (any edge of the polygon, taken modulo 90 degrees); 0 for the other slots. An object's local x
+    axis points along ``(cos yaw, -sin yaw)`` on the floor, so it is parallel to an edge of angle ``a``
+    (``atan2(dz, dx)``) when ``yaw + a`` is a multiple of 90 degrees."""
+    B, N = ground.shape
+    walls = torch.zeros(B, N, dtype=torch.float64)
+    for b, floor in enumerate(floors):
+        v = np.asarray(floor.vertices, dtype=np.float64)
+        d = np.roll(v, -1, 0) - v
+        a = torch.from_numpy(np.arctan2(d[:, 1], d[:, 0]))
+        off = torch.remainder(torch.rad2deg(yaws[b].double().cpu()[:, None] + a[None, :]), 90.0)  # (N, edges)
+        walls[b] = torch.minimum(off, 90.0 - off).min(1).values
+    return torch.where(ground, walls.to(yaws.device, yaws.dtype), torch.zeros_like(yaws))
 
 
 @contextmanager

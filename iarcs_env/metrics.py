@@ -21,6 +21,10 @@ Definitions (DESIGN.md, "Metric definitions"; used exactly):
   below the floor / ground objects (pooled). Every ground object of the real 3D-FRONT rooms stands on the
   floor, and nothing else asks for it: an RL adapter that may move objects vertically sinks beds into the
   floor to pass a height limit, or lifts furniture to avoid collisions.
+* ``R_misaligned`` (our addition): ground objects whose axes are more than 10 degrees from every wall
+  direction of the floor (:func:`~iarcs_env.geometry.wall_misalignment`) / ground objects (pooled). The
+  procedural rooms have none and the real bedrooms almost none; a diffusion prior turns some furniture
+  away from the walls, which no other metric sees.
 * Set-level statistics against a reference set: ``KL_class`` = KL(reference || generated) of the class
   frequencies (per object, smoothed with 1e-6); ``count_distance`` = earth mover's (1-Wasserstein)
   distance between the object-count histograms, in objects; plus both mean counts.
@@ -85,6 +89,7 @@ class BatchResult:
     colliding: np.ndarray
     out_of_bound: np.ndarray
     off_floor: np.ndarray
+    misaligned: np.ndarray
     reachable: np.ndarray
     walkable: np.ndarray  # (B,)
     free_cells: np.ndarray
@@ -107,11 +112,12 @@ def evaluate_batch(batch: SceneBatch, cell: float = geo.WALK_CELL, agent_radius:
                                          shrink=geo.OUT_OF_BOUND_SHRINK)
     out = (out_area > geo.OUT_OF_BOUND_AREA) & mask
     off_floor = geo.floor_gaps(batch.translations, batch.half_sizes, ground) > geo.FLOOR_CONTACT_TOL
+    misaligned = geo.wall_misalignment(batch.yaws, batch.floors, ground) > geo.ALIGNMENT_TOL_DEG
     space = geo.free_space(batch.floors, batch.translations, batch.half_sizes, batch.yaws, ground,
                            cell=cell, radius=agent_radius, reach=True)
     m, g = mask.cpu().numpy(), ground.cpu().numpy()
     res = BatchResult(m, g, colliding.cpu().numpy(), out.cpu().numpy(), off_floor.cpu().numpy(),
-                      space.reach & g, space.walkable_ratio,
+                      misaligned.cpu().numpy(), space.reach & g, space.walkable_ratio,
                       space.free_cells, space.largest_cells, overlap.cpu().numpy(), out_area.cpu().numpy(), space)
     for b in range(batch.batch_size):
         slots = np.nonzero(m[b])[0]  # slot -> object index (empty slots dropped)
@@ -214,7 +220,7 @@ def evaluate_layouts(layouts: Sequence[Layout], reference: Sequence[Layout] | No
     """Evaluate layouts with the DESIGN.md metrics.
 
     Returns a dict with ``Col_obj``, ``Col_scene``, ``R_out``, ``R_reach``, ``R_walkable`` and
-    ``R_off_floor`` (fractions in [0, 1]) plus counts (``n_scenes``, ``n_objects``, ``n_ground_objects``),
+    ``R_off_floor`` and ``R_misaligned`` (fractions in [0, 1]) plus counts (``n_scenes``, ``n_objects``, ``n_ground_objects``),
     ``mean_objects`` and ``mean_ground_objects`` (per scene; the latter without ceiling and pendant lamps), and
     the grid settings. With a ``reference`` set: ``KL_class``, ``count_distance``,
     ``reference_mean_objects``; with ``features`` too (``"cnn"`` or ``"clip:PATH"``, see
@@ -223,7 +229,8 @@ def evaluate_layouts(layouts: Sequence[Layout], reference: Sequence[Layout] | No
     masks, in each layout's centred frame).
     """
     layouts = one_room_type(layouts)
-    totals = dict(objects=0, ground=0, colliding=0, scenes_colliding=0, out=0, off_floor=0, reachable=0)
+    totals = dict(objects=0, ground=0, colliding=0, scenes_colliding=0, out=0, off_floor=0, misaligned=0,
+                  reachable=0)
     walkable, scenes = [], []
     bar = None
     if progress:
@@ -238,6 +245,7 @@ def evaluate_layouts(layouts: Sequence[Layout], reference: Sequence[Layout] | No
         totals["scenes_colliding"] += int(r.colliding.any(1).sum())
         totals["out"] += int(r.out_of_bound.sum())
         totals["off_floor"] += int(r.off_floor.sum())
+        totals["misaligned"] += int(r.misaligned.sum())
         totals["reachable"] += int(r.reachable.sum())
         walkable.append(r.walkable)
         if keep_scenes:
@@ -255,6 +263,7 @@ def evaluate_layouts(layouts: Sequence[Layout], reference: Sequence[Layout] | No
         "R_reach": totals["reachable"] / ground if totals["ground"] else 1.0,
         "R_walkable": float(np.concatenate(walkable).mean()),
         "R_off_floor": totals["off_floor"] / ground,
+        "R_misaligned": totals["misaligned"] / ground,
         "n_scenes": n,
         "n_objects": totals["objects"],
         "n_ground_objects": totals["ground"],

@@ -17,6 +17,9 @@ batch's device. They are registered by name in :data:`REWARDS` (add your own wit
   (0.05 m, the R_off_floor metric's) of the floor, otherwise minus the total distance (m) beyond it of those
   that are not, sunk or lifted. Without it an adapter that may change an object's elevation passes a height
   limit by sinking beds into the floor, and dodges collisions by lifting furniture.
+* ``wall_alignment`` (our addition): +``bonus`` (1) when every ground object's axes are within ``tolerance``
+  (10 degrees, the R_misaligned metric's) of a wall direction, otherwise minus the total angle (radians)
+  beyond it of those that are not.
 * ``object_count`` (Alg. 4): ``mode="kl"`` (default): minus KL(batch || training) between the batch's
   object-count histogram and the training set's (``DatasetStats.count_distribution``), both smoothed
   with ``eps``; the same value for every scene of the batch (it rewards the batch as a whole, which keeps
@@ -135,6 +138,16 @@ def floor_contact_reward(batch: SceneBatch, tolerance: float = geo.FLOOR_CONTACT
     """+``bonus`` when every ground object stands on the floor, else minus the total gap beyond ``tolerance``."""
     excess = (geo.floor_gaps(batch.translations, batch.half_sizes, batch.ground_mask) - tolerance).clamp(min=0)
     total = excess.sum(1)
+    return _out(torch.where(total > 0, -total, torch.full_like(total, bonus)), batch)
+
+
+@register_reward("wall_alignment")
+def wall_alignment_reward(batch: SceneBatch, tolerance: float = geo.ALIGNMENT_TOL_DEG,
+                          bonus: float = 1.0) -> torch.Tensor:
+    """+``bonus`` when every ground object is aligned with a wall, else minus the total angle beyond ``tolerance``
+    (radians)."""
+    excess = (geo.wall_misalignment(batch.yaws, batch.floors, batch.ground_mask) - tolerance).clamp(min=0)
+    total = torch.deg2rad(excess).sum(1)
     return _out(torch.where(total > 0, -total, torch.full_like(total, bonus)), batch)
 
 

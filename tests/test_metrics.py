@@ -101,6 +101,29 @@ def test_sunk_and_lifted_furniture_is_off_the_floor_but_lamps_and_small_gaps_are
     assert out["scenes"][0].off_floor == [0, 1] and out["scenes"][0].has_issue
 
 
+# --- wall alignment ------------------------------------------------------------------------------------
+def test_furniture_turned_away_from_the_walls_is_misaligned_whatever_the_quarter_turn():
+    deg = np.pi / 180
+    objects = [box("double_bed", 1.0, 1.5, 0.9, 1.0, yaw=20 * deg),       # 20 degrees off: misaligned
+               box("nightstand", 2.4, 0.5, 0.25, 0.25, yaw=95 * deg),     # a quarter turn + 5: aligned
+               box("wardrobe", 3.4, 2.5, 0.5, 0.3, yaw=-172 * deg),       # 8 off a half turn: aligned
+               box("cabinet", 3.4, 1.2, 0.3, 0.3, yaw=45 * deg),          # diagonal: misaligned
+               ("pendant_lamp", (2.0, 1.8, 1.5), (0.2, 0.2, 0.2), 0.3)]  # hangs: not a ground object
+    lay = make_layout(objects)
+    b = batch_float64([lay])
+    angles = geo.wall_misalignment(b.yaws, b.floors, b.ground_mask)[0]
+    assert angles.tolist() == pytest.approx([20, 5, 8, 45, 0], abs=1e-9)
+    assert run(lay).misaligned[0].tolist() == [True, False, False, True, False]
+    assert evaluate_layouts([lay])["R_misaligned"] == pytest.approx(2 / 4)
+    # a floor turned 30 degrees: furniture turned with it is aligned
+    turn = 30 * deg
+    c, s = np.cos(turn), np.sin(turn)
+    floor = [(c * x - s * z, s * x + c * z) for x, z in RECT]
+    aligned = make_layout([box("wardrobe", 1.0, 1.5, 0.5, 0.3, yaw=-turn)], floor=floor)
+    assert not run(aligned).misaligned.any()
+    assert run(make_layout([box("wardrobe", 1.0, 1.5, 0.5, 0.3)], floor=floor)).misaligned[0, 0]
+
+
 # --- walkability and reachability ---------------------------------------------------------------------
 def test_a_wardrobe_splitting_the_room_gives_the_known_walkable_ratio_and_reach():
     # room 4 x 3; a wardrobe wall-to-wall at x = 1.4..1.6; free x: 0.3..1.1 (left) and 1.9..3.7 (right)
@@ -195,6 +218,7 @@ def test_real_bedrooms_land_on_the_reference_figures():
     assert out["R_reach"] == pytest.approx(0.786, abs=0.02)
     assert out["R_walkable"] == pytest.approx(0.915, abs=0.02)
     assert out["R_off_floor"] < 0.002  # real ground objects stand on the floor: 2 of 1,863 are 5-9 cm off it
+    assert out["R_misaligned"] == pytest.approx(0.028, abs=0.005)  # 53 of 1,863 turned > 10 deg from the walls
 
 
 def test_eval_prior_lists_the_colliding_class_pairs_with_their_overlap():

@@ -13,7 +13,7 @@ from iarcs_env.scene import SceneBatch
 from iarcs_env.stats import DatasetStats
 from rewards import (REWARDS, CompositeReward, accessibility_reward, boundary_reward, class_frequency_reward,
                      class_presence_reward, collision_reward, floor_contact_reward, object_count_reward,
-                     register_reward)
+                     register_reward, wall_alignment_reward)
 from scene_factory import L_SHAPE, box, make_layout, random_layouts
 
 
@@ -58,6 +58,18 @@ def test_floor_contact_reward_is_one_on_the_floor_and_minus_the_gaps_beyond_the_
     assert r[0].item() == 1.0
     np.testing.assert_allclose(r[1:].numpy(), [-0.10, -(0.10 + 0.30)], rtol=1e-5)
     assert "floor_contact" in REWARDS
+
+
+def test_wall_alignment_reward_is_one_when_aligned_and_minus_the_angles_beyond_the_tolerance_otherwise():
+    deg = np.pi / 180
+    aligned = make_layout([box("double_bed", 1.0, 1.5, 0.9, 1.0, yaw=93 * deg),
+                           ("pendant_lamp", (2, 1.8, 1.5), (0.2, 0.2, 0.2), 30 * deg)])  # lamps do not count
+    turned = make_layout([box("double_bed", 1.0, 1.5, 0.9, 1.0, yaw=25 * deg),
+                          box("nightstand", 2.4, 0.5, 0.25, 0.25, yaw=-40 * deg)])
+    r = wall_alignment_reward(batch(aligned, turned))
+    assert r[0].item() == 1.0
+    assert r[1].item() == pytest.approx(-(15 + 30) * deg, rel=1e-5)  # 25 and 40 degrees off: 15 and 30 beyond 10
+    assert "wall_alignment" in REWARDS
 
 
 def test_accessibility_reward_prefers_an_open_room_to_a_split_one():

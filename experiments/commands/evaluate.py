@@ -165,7 +165,8 @@ def markdown_table(result: dict, name: str) -> str:
             ("R_out % ↓", lambda r: _pct(r["R_out"])),
             ("R_reach % ↑", lambda r: _pct(r["R_reach"])),
             ("R_walkable ↑", lambda r: f"{r['R_walkable']:.3f}"),
-            ("R_off_floor % ↓", lambda r: _pct(r.get("R_off_floor")))]
+            ("R_off_floor % ↓", lambda r: _pct(r.get("R_off_floor"))),
+            ("R_misaligned % ↓", lambda r: _pct(r.get("R_misaligned")))]
     head = "| Method | " + " | ".join(c for c, _ in cols) + " |"
     rule = "|---|" + "---|" * len(cols)
     row = f"| {name} | " + " | ".join(f(result) for _, f in cols) + " |"
@@ -194,7 +195,8 @@ def markdown_report(result: dict, name: str) -> str:
               "box overlap > 1e-6 m³ between ground objects; an object is out of bound when its footprint, shrunk "
               "by 0.05 m per side, has > 1e-5 m² outside the floor; R_walkable = largest 4-connected free region "
               "/ free cells; R_reach = ground objects whose inflated footprint touches that region; R_off_floor (our "
-              "addition) = ground objects whose bottom is more than 0.05 m above or below the floor.", ""]
+              "addition) = ground objects whose bottom is more than 0.05 m above or below the floor; R_misaligned (our "
+              "addition) = ground objects turned more than 10° away from every wall direction.", ""]
     if any(k.startswith("task_success_") for k in result):
         lines += ["Task success: the fraction of scenes passing the task's hand-written checker (definitions in "
                   "`iarcs_env/tasks.py`).", ""]

@@ -186,8 +186,8 @@ def write_comparison(out: Path, rows: list[dict], task: str | None = None, n_sho
 
     pictures, metrics = [], {}
     lines = ["| scenes | " + ("task success % | " if task else "") + "Col_obj % | Col_scene % | R_out % | "
-             "R_reach % | R_walkable | R_off_floor % | objects / room |",
-             "|---|" + ("---|" if task else "") + "---|---|---|---|---|---|---|"]
+             "R_reach % | R_walkable | R_off_floor % | R_misaligned % | objects / room |",
+             "|---|" + ("---|" if task else "") + "---|---|---|---|---|---|---|---|"]
     for i, row in enumerate(rows):
         res, layouts = row["result"], row["layouts"]
         shown = range(min(n_show, len(layouts)))
@@ -198,6 +198,7 @@ def write_comparison(out: Path, rows: list[dict], task: str | None = None, n_sho
         lines.append(f"| {row['name']} | " + (f"{100 * res['task_success']:.1f} | " if task else "")
                      + f"{100 * res['Col_obj']:.2f} | {100 * res['Col_scene']:.2f} | {100 * res['R_out']:.2f} | "
                      f"{100 * res['R_reach']:.2f} | {res['R_walkable']:.3f} | {100 * res['R_off_floor']:.2f} | "
+                     f"{100 * res['R_misaligned']:.2f} | "
                      f"{per_room:.2f} |")
         metrics[row["name"]] = {k: v for k, v in res.items() if isinstance(v, (int, float))}
     (out / "metrics.json").write_text(json.dumps(metrics, indent=1))
