@@ -18,7 +18,7 @@ import json, sys
 out = sys.argv[1]
 b, s = (json.load(open(f"{out}/{n}_report.json")) for n in ("base", "stage1"))
 print("| metric | prior | stage 1 | change |\n|---|---|---|---|")
-for k in ("Col_obj", "Col_scene", "R_out", "R_reach", "R_walkable", "R_off_floor"):
+for k in ("Col_obj", "Col_scene", "R_out", "R_reach", "R_walkable", "R_off_floor", "R_misaligned"):
     print(f"| {k} | {b[k]:.4f} | {s[k]:.4f} | {100 * (s[k] - b[k]) / max(b[k], 1e-9):+.1f}% |")
 print(f"| class KL to the prior's samples | – | {s['KL_class']:.4f} | |")
 PY
