@@ -6,8 +6,8 @@ It reads a constraint the way the agent would, but with a small, readable vocabu
   Scene API's classes and groups (:data:`OBJECTS`);
 * **quantities** ("1.0 m", "90 cm", "30 degrees", "2 night tables", "two chairs", "at least 3 ...");
 * **relations and requirements** ("on either side of", "left/right of", "in front of", "facing",
-  "view ... from", "within a 1.0 m reach", "against the wall", "within 1 m of", "wheelchair-accessible",
-  "turning circle", "clear path", "study zone", "farsighted" / "4K" for viewing distances, ...).
+  "view ... from", "within a 1.0 m reach", "against the wall", "parallel to the walls", "within 1 m of",
+  "wheelchair-accessible", "turning circle", "clear path", "study zone", "farsighted" / "4K" for viewing distances, ...).
 
 Each recognised phrase becomes a :class:`Check`: a description, the body of a small function written
 against :mod:`rewards.scene_api` only, and its thresholds as named module-level UPPER_CASE constants.
@@ -133,6 +133,7 @@ WHEELCHAIR_TURN = 1.5          # turning circle diameter (ADA: 60 in)
 TURN_NEAR = 0.5                # turning circle within 0.5 m of the bed
 WALKING_PATH = 0.6             # a clear path for a walking person
 WALL_GAP = 0.1                 # "against the wall": back edge within 0.1 m of the wall
+ALIGN_ANGLE = 10.0             # "parallel to the walls": axes within 10 degrees of a wall's (the R_misaligned metric)
 
 PRIMARY_WEIGHT = 2.0           # checks that carry the constraint's relation
 SUPPORT_WEIGHT = 1.0           # existence and count checks the constraint asks for
@@ -141,7 +142,7 @@ IMPLIED_WEIGHT = 0.5           # existence of the objects a relation needs (part
 #: Check kinds that need their objects to exist: every object such a check names (a relation's subject and
 #: reference, the object a turning circle must be next to) also gets a has_<object> check of IMPLIED_WEIGHT
 #: unless the constraint already counts it, so adding a missing one already pays. Not here: the checks an
-#: emptier room satisfies (EMPTY_ROOM_KINDS) and the single-object requirements ("height", "wall") whose own
+#: emptier room satisfies (EMPTY_ROOM_KINDS) and the single-object requirements ("height", "wall", "aligned") whose own
 #: value already includes "there is at least one".
 NEEDS_OBJECTS = ("either_side", "side", "in_front", "view", "facing", "near", "turning")
 
@@ -371,6 +372,20 @@ def wall_check(subj: Entity, phrase: str) -> Check:
                  body, [Param("WALL_GAP", WALL_GAP, "m: largest gap between the back and the wall", relax=0.2),
                         Param("WALL_SCALE", 0.15, "m: softness", kind="scale")],
                  PRIMARY_WEIGHT, phrase, (subj,), "wall", "WALL_GAP")
+
+
+def aligned_check(subj: Entity, phrase: str) -> Check:
+    body = f"""    mask = {_objects(subj)}
+    has_any = torch.clamp(mask.float().sum(dim=1), max=1.0)
+    square = scene.below(scene.wall_angle(), math.radians($ALIGN_ANGLE_DEG), scale=$ALIGN_SCALE)
+    return has_any * scene.all_of(square, mask)
+"""
+    return Check(f"{subj.key}_aligned_with_walls", f"every {subj.label} within {ALIGN_ANGLE:g} degrees of parallel "
+                 f"to a wall", body,
+                 [Param("ALIGN_ANGLE_DEG", ALIGN_ANGLE, "degrees: largest angle to the nearest wall direction",
+                        relax=10.0),
+                  Param("ALIGN_SCALE", 0.1, "rad: softness", kind="scale")],
+                 PRIMARY_WEIGHT, phrase, (subj,), "aligned", "ALIGN_ANGLE_DEG")
 
 
 def clear_path_check(width: float, phrase: str) -> Check:
@@ -647,16 +662,19 @@ def _rule_relations(r: _Reader) -> None:
         (r"\bin front of\b", "in_front"),
         (r"\bfac(?:ing|es|e)(?: towards?| to)?\b", "facing"),
         (r"\b(?:against|along|touching|flush with|backed (?:up )?against) (?:the |a |one )?walls?\b", "wall"),
+        (r"\b(?:parallel (?:to|with)|aligned (?:to|with)|square (?:to|with)|straight (?:to|with)) (?:the |a |its )?"
+         r"walls?\b", "aligned"),
     ]
     for pattern, kind in rules:
         for m in re.finditer(pattern, r.text):
             subject = r.before(m.start())
-            if kind == "wall":
+            if kind in ("wall", "aligned"):
                 if subject is None:
                     r.plan.not_understood.append(f"'{m.group()}' (no object named before it)")
                     r.cover(m.start(), m.end())
                     continue
-                r.add(wall_check(subject.entity, m.group()), m.start(), m.end(), subject)
+                check = wall_check if kind == "wall" else aligned_check
+                r.add(check(subject.entity, m.group()), m.start(), m.end(), subject)
                 continue
             ref = r.reference_after(m.end(), subject)
             if subject is None or ref is None:
@@ -940,7 +958,8 @@ class OfflinePlanner:
                 f"(not understood: {', '.join(plan.not_understood) or 'everything'}). It knows objects such as "
                 f"{', '.join(sorted({e.label for e in OBJECTS.values()}))} and requirements such as counts, "
                 f"heights ('within a 1.0 m reach'), 'on either side of', 'left/right of', 'in front of', "
-                f"'facing', 'view ... from', 'within X m of', 'against the wall', 'wheelchair-accessible', "
+                f"'facing', 'view ... from', 'within X m of', 'against the wall', 'parallel to the walls', "
+                f"'wheelchair-accessible', "
                 f"'turning circle', 'clear path', 'study zone'.")
         return plan
 

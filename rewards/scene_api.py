@@ -24,7 +24,7 @@ import textwrap
 import torch
 
 from iarcs_env import relations as rel
-from iarcs_env.geometry import WALK_CELL, single_thread
+from iarcs_env.geometry import WALK_CELL, single_thread, wall_misalignment
 from iarcs_env.rooms import get_room
 from iarcs_env.scene import SceneBatch
 
@@ -154,6 +154,12 @@ class Scene:
         b = self._batch
         return self._cached("back", lambda: rel.back_to_wall(b.translations, b.half_sizes, b.yaws, self._edges())
                             .to(b.translations.dtype))
+
+    def wall_angle(self) -> torch.Tensor:
+        """(B, N) angle (rad, 0..pi/4) between the object's axes and the nearest wall direction of the floor
+        (0: square to the walls; any multiple of 90 degrees counts, so a bed turned a quarter is square too)."""
+        b = self._batch
+        return self._cached("wall_angle", lambda: torch.deg2rad(wall_misalignment(b.yaws, b.floors, b.mask)))
 
     # --- free space --------------------------------------------------------------------------------------
     def _space(self, radius: float):

@@ -178,6 +178,20 @@ def test_vocabulary_synonyms_numbers_and_units():
     assert check_program(p.code) == []
 
 
+def test_parallel_to_the_walls_scores_square_furniture_above_turned_furniture():
+    plan = read_constraint("All furniture parallel to the walls and the wardrobe against the wall")
+    assert [c.key for c in plan.checks] == ["furniture_aligned_with_walls", "wardrobe_against_wall"]
+    assert plan.not_understood == []
+    p = PLANNER.synthesize("bedroom", "A bedroom with every piece of furniture aligned with the walls")
+    assert check_program(p.code) == [] and program_constants(p.code)["ALIGN_ANGLE_DEG"] == 10
+    square = make_layout([box("double_bed", 2.0, 1.1, 0.9, 1.0), box("nightstand", 3.3, 0.3, 0.25, 0.25,
+                                                                        yaw=math.pi / 2)])
+    turned = [make_layout([box("double_bed", 2.0, 1.1, 0.9, 1.0, yaw=math.radians(a)),
+                           box("nightstand", 3.3, 0.3, 0.25, 0.25)]) for a in (12, 25, 40)]
+    scores = run(p.code, [square, *turned])
+    assert scores[0] > 0.99 and scores[0] > scores[1] > scores[2] > scores[3]
+
+
 #: One constraint per check kind that needs its objects, and the has_<object> checks it must come with.
 NEEDS_OBJECTS_PROMPTS = {
     "either_side": ("night tables on either side of the bed", {"has_nightstand", "has_bed"}),

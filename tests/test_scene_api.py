@@ -31,7 +31,7 @@ def test_shapes_and_basic_properties():
     for name in ("distance", "gap", "facing_angle"):
         assert tuple(getattr(s, name)().shape) == (B, N, N), name
     assert tuple(s.local_offset().shape) == (B, N, N, 2)
-    for name in ("wall_distance", "back_to_wall"):
+    for name in ("wall_distance", "back_to_wall", "wall_angle"):
         assert tuple(getattr(s, name)().shape) == (B, N), name
     assert tuple(s.walkable().shape) == (B,) and tuple(s.reachable().shape) == (B, N)
     assert s.free_circle(0.5).dtype == torch.bool and tuple(s.free_circle(0.5).shape) == (B,)
@@ -91,6 +91,9 @@ def test_walls():
     assert float(back[1]) == pytest.approx(0, abs=1e-6)  # headboard against the wall z = 0
     assert float(back[2]) == pytest.approx(3 - 1.8, abs=1e-6)  # facing -z: its back faces the wall z = 3
     assert float(back[0]) == pytest.approx(0.7, abs=1e-6)
+    assert s.wall_angle()[0].tolist() == pytest.approx([0, 0, 0, 0], abs=1e-6)  # the TV stand's half turn too
+    turned = scene(box("wardrobe", 1, 1, 0.5, 0.3, yaw=math.radians(100)), box("desk", 2, 2, 0.5, 0.3, yaw=0.7))
+    assert turned.wall_angle()[0].tolist() == pytest.approx([math.radians(10), 0.7], abs=1e-6)
 
 
 def test_free_space_with_radius():
