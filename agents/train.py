@@ -82,7 +82,8 @@ class TrainConfig:
     in ``eval.jsonl``. DDPO's success can fall back after a peak (docs/results/stage2_tasks.md)."""
     best_tolerance: dict = field(default_factory=dict)
     """``{metric: amount}``: an evaluation counts for ``best`` only if none of these metrics (Col_obj, Col_scene,
-    R_out, R_off_floor, R_misaligned, R_reach, R_walkable, mean_objects, mean_ground_objects: objects per room without lamps)
+    R_out, R_off_floor, R_misaligned, R_reach, R_walkable, mean_objects, mean_ground_objects: objects per room
+    without lamps)
     is worse than the starting adapter's (evaluated at epoch 0) by more than its amount, e.g.
     ``{Col_obj: 0.02, R_out: 0.01, mean_ground_objects: 0.3}``."""
     seed: int = 0

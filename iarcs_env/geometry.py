@@ -70,12 +70,12 @@ def floor_gaps(translations: torch.Tensor, half_sizes: torch.Tensor, ground: tor
     return torch.where(ground, bottoms.abs(), torch.zeros_like(bottoms))
 
 
-def wall_misalignment(yaws: torch.Tensor, floors: Sequence[FloorPlan], ground: torch.Tensor) -> torch.Tensor:
-    """(B, N) angle (degrees, in [0, 45]) between each ground object's axes and the nearest wall direction of
-    its floor (any edge of the polygon, taken modulo 90 degrees); 0 for the other slots. An object's local x
-    axis points along ``(cos yaw, -sin yaw)`` on the floor, so it is parallel to an edge of angle ``a``
-    (``atan2(dz, dx)``) when ``yaw + a`` is a multiple of 90 degrees."""
-    B, N = ground.shape
+def wall_misalignment(yaws: torch.Tensor, floors: Sequence[FloorPlan], mask: torch.Tensor) -> torch.Tensor:
+    """(B, N) angle (degrees, in [0, 45]) between the axes of each object in ``mask`` and the nearest wall
+    direction of its floor (any edge of the polygon, taken modulo 90 degrees); 0 for the other slots. An
+    object's local x axis points along ``(cos yaw, -sin yaw)`` on the floor, so it is parallel to an edge of
+    angle ``a`` (``atan2(dz, dx)``) when ``yaw + a`` is a multiple of 90 degrees."""
+    B, N = mask.shape
     walls = torch.zeros(B, N, dtype=torch.float64)
     for b, floor in enumerate(floors):
         v = np.asarray(floor.vertices, dtype=np.float64)
@@ -83,7 +83,7 @@ def wall_misalignment(yaws: torch.Tensor, floors: Sequence[FloorPlan], ground: t
         a = torch.from_numpy(np.arctan2(d[:, 1], d[:, 0]))
         off = torch.remainder(torch.rad2deg(yaws[b].double().cpu()[:, None] + a[None, :]), 90.0)  # (N, edges)
         walls[b] = torch.minimum(off, 90.0 - off).min(1).values
-    return torch.where(ground, walls.to(yaws.device, yaws.dtype), torch.zeros_like(yaws))
+    return torch.where(mask, walls.to(yaws.device, yaws.dtype), torch.zeros_like(yaws))
 
 
 @contextmanager

@@ -220,7 +220,8 @@ def evaluate_layouts(layouts: Sequence[Layout], reference: Sequence[Layout] | No
     """Evaluate layouts with the DESIGN.md metrics.
 
     Returns a dict with ``Col_obj``, ``Col_scene``, ``R_out``, ``R_reach``, ``R_walkable`` and
-    ``R_off_floor`` and ``R_misaligned`` (fractions in [0, 1]) plus counts (``n_scenes``, ``n_objects``, ``n_ground_objects``),
+    ``R_off_floor`` and ``R_misaligned`` (fractions in [0, 1]) plus counts (``n_scenes``, ``n_objects``,
+    ``n_ground_objects``),
     ``mean_objects`` and ``mean_ground_objects`` (per scene; the latter without ceiling and pendant lamps), and
     the grid settings. With a ``reference`` set: ``KL_class``, ``count_distance``,
     ``reference_mean_objects``; with ``features`` too (``"cnn"`` or ``"clip:PATH"``, see

@@ -7,7 +7,8 @@ It reads a constraint the way the agent would, but with a small, readable vocabu
 * **quantities** ("1.0 m", "90 cm", "30 degrees", "2 night tables", "two chairs", "at least 3 ...");
 * **relations and requirements** ("on either side of", "left/right of", "in front of", "facing",
   "view ... from", "within a 1.0 m reach", "against the wall", "parallel to the walls", "within 1 m of",
-  "wheelchair-accessible", "turning circle", "clear path", "study zone", "farsighted" / "4K" for viewing distances, ...).
+  "wheelchair-accessible", "turning circle", "clear path", "study zone", "farsighted" / "4K" for viewing
+  distances, ...).
 
 Each recognised phrase becomes a :class:`Check`: a description, the body of a small function written
 against :mod:`rewards.scene_api` only, and its thresholds as named module-level UPPER_CASE constants.
@@ -142,8 +143,8 @@ IMPLIED_WEIGHT = 0.5           # existence of the objects a relation needs (part
 #: Check kinds that need their objects to exist: every object such a check names (a relation's subject and
 #: reference, the object a turning circle must be next to) also gets a has_<object> check of IMPLIED_WEIGHT
 #: unless the constraint already counts it, so adding a missing one already pays. Not here: the checks an
-#: emptier room satisfies (EMPTY_ROOM_KINDS) and the single-object requirements ("height", "wall", "aligned") whose own
-#: value already includes "there is at least one".
+#: emptier room satisfies (EMPTY_ROOM_KINDS) and the single-object requirements ("height", "wall", "aligned")
+#: whose own value already includes "there is at least one".
 NEEDS_OBJECTS = ("either_side", "side", "in_front", "view", "facing", "near", "turning")
 
 #: Check kinds that an emptier room satisfies (no object in the way, no pair too close): reflection's
@@ -959,8 +960,7 @@ class OfflinePlanner:
                 f"{', '.join(sorted({e.label for e in OBJECTS.values()}))} and requirements such as counts, "
                 f"heights ('within a 1.0 m reach'), 'on either side of', 'left/right of', 'in front of', "
                 f"'facing', 'view ... from', 'within X m of', 'against the wall', 'parallel to the walls', "
-                f"'wheelchair-accessible', "
-                f"'turning circle', 'clear path', 'study zone'.")
+                f"'wheelchair-accessible', 'turning circle', 'clear path', 'study zone'.")
         return plan
 
     def synthesize(self, room: str, constraint: str, feedback: str | None = None) -> RewardProposal:
