@@ -77,11 +77,12 @@ def wall_misalignment(yaws: torch.Tensor, floors: Sequence[FloorPlan], mask: tor
     angle ``a`` (``atan2(dz, dx)``) when ``yaw + a`` is a multiple of 90 degrees."""
     B, N = mask.shape
     walls = torch.zeros(B, N, dtype=torch.float64)
+    y = yaws.detach().double().cpu()  # one transfer, not one per scene
     for b, floor in enumerate(floors):
         v = np.asarray(floor.vertices, dtype=np.float64)
         d = np.roll(v, -1, 0) - v
         a = torch.from_numpy(np.arctan2(d[:, 1], d[:, 0]))
-        off = torch.remainder(torch.rad2deg(yaws[b].double().cpu()[:, None] + a[None, :]), 90.0)  # (N, edges)
+        off = torch.remainder(torch.rad2deg(y[b][:, None] + a[None, :]), 90.0)  # (N, edges)
         walls[b] = torch.minimum(off, 90.0 - off).min(1).values
     return torch.where(mask, walls.to(yaws.device, yaws.dtype), torch.zeros_like(yaws))
 
