@@ -50,3 +50,33 @@ def load_yaml_config(cls: type[T], path: str | Path, **overrides) -> T:
         raise ValueError(f"{path}: expected a mapping of settings at the top level")
     data.update({k: v for k, v in overrides.items() if v is not None})
     return dataclass_from_dict(cls, data, str(path))
+
+
+DEVICE_CHOICES = "auto, cpu, cuda or cuda:N"
+
+
+def check_device(name: str) -> str:
+    """``name`` if it spells a device iARCS runs on (:data:`DEVICE_CHOICES`), else a ValueError saying so."""
+    text = str(name).strip().lower()
+    if text in ("auto", "cpu", "cuda") or (text.startswith("cuda:") and text[5:].isdigit()):
+        return text
+    raise ValueError(f"device {name!r} is not one iARCS runs on; use {DEVICE_CHOICES}")
+
+
+def resolve_device(name: str = "auto"):
+    """The ``torch.device`` of a device setting: ``auto`` is the first CUDA GPU when torch sees one, else the
+    CPU. Asking for a GPU that torch does not see is an error that says why, not a crash inside a layer."""
+    import torch
+
+    text = check_device(name)
+    if text == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    device = torch.device(text)
+    if device.type == "cuda":
+        if not torch.cuda.is_available():
+            raise ValueError(f"device {name!r} asked for, but torch {torch.__version__} sees no CUDA GPU (a CPU-only "
+                             "build of torch, or no GPU driver); use device auto or cpu, or install a CUDA build of torch")
+        if device.index is not None and device.index >= torch.cuda.device_count():
+            raise ValueError(f"device {name!r} asked for, but torch sees {torch.cuda.device_count()} CUDA GPU(s) "
+                             f"(cuda:0 to cuda:{torch.cuda.device_count() - 1})")
+    return device

@@ -136,6 +136,11 @@ class DDPO:
         info = {"clip_fraction": float(out["clip_fraction"]), "approx_kl": float(out["kl_approx"])}
         return loss, info
 
+    @property
+    def device(self) -> torch.device:
+        """Where the policy's weights are (``policy.to(device)`` moves them; rollouts stay on the CPU)."""
+        return self.policy.prior.device
+
     # --- rollouts --------------------------------------------------------------------------------------
     def collect_rollouts(self) -> TensorDict:
         """One batch of B full chains: a TensorDict [B, S] of transitions, plus per-scene ``reward``,
@@ -152,7 +157,9 @@ class DDPO:
             x_t = torch.from_numpy(obs["x_t"])
             t = torch.from_numpy(obs["t"])
             floor = torch.from_numpy(obs["floor"])
-            action, log_prob = self.policy.act(x_t, t, floor, generator=self.generator)
+            on = self.device  # rollouts are stored on the CPU; the policy runs where its weights are
+            action, log_prob = (v.cpu() for v in self.policy.act(x_t.to(on), t.to(on), floor.to(on),
+                                                                 generator=self.generator))
             steps.append({"x_t": x_t, "t": t, "floor": floor, "action": action, "sample_log_prob": log_prob})
             obs, reward, terminated, _, info = self.env.step(action.numpy())
         if not terminated.all():
@@ -201,13 +208,14 @@ class DDPO:
         k = max(1, int(round(cfg.timestep_fraction * len(steps))))
         infos = []
         self.policy.model.eval()
+        self.loss_module.to(self.device)  # its clip-range buffer follows the policy (e.g. moved after __init__)
         for _ in range(cfg.num_inner_epochs):
             perm = torch.randperm(b, generator=self.generator)
             for start in range(0, b, cfg.minibatch_size):
                 rows = perm[start:start + cfg.minibatch_size]
                 # a random subset of each scene's timesteps (all of them when timestep_fraction = 1)
                 cols = torch.stack([steps[torch.randperm(len(steps), generator=self.generator)[:k]] for _ in rows])
-                mb = rollout[rows[:, None], cols].reshape(-1)
+                mb = rollout[rows[:, None], cols].reshape(-1).to(self.device)
                 loss, info = self.policy_loss(mb)
                 if cfg.kl_coef > 0:
                     kl = self.kl_to_base(mb)
@@ -292,8 +300,10 @@ class DDPO:
         f = torch.as_tensor(observation["floor"], dtype=torch.float32)
         if single:
             x, f = x[None], f[None]
-        action, _ = self.policy.act(x, t, f, generator=self.generator, deterministic=deterministic)
-        action = action.numpy()
+        on = self.device
+        action, _ = self.policy.act(x.to(on), t.to(on), f.to(on), generator=self.generator,
+                                    deterministic=deterministic)
+        action = action.cpu().numpy()
         return (action[0] if single else action), None
 
     @torch.no_grad()
@@ -396,7 +406,7 @@ class DDPO:
         if found is None:
             raise FileNotFoundError(f"no training checkpoint in {path} (trainer_state.pt missing)")
         path = found
-        state = torch.load(path / "trainer_state.pt", weights_only=False)
+        state = torch.load(path / "trainer_state.pt", map_location="cpu", weights_only=False)
         name = state["adapter"]
         policy.load_adapter(path / "adapter" / name, name)
         algo = ALGORITHMS.get(state["algorithm"], cls)

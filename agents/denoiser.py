@@ -68,7 +68,7 @@ from torch import nn
 from iarcs_env.floorplan import FloorPlan
 from iarcs_env.rooms import RoomSpec, get_room
 from iarcs_env.scene import MIN_FREE_RANGE, SceneBatch, floor_features, footprint_reach
-from iarcs_env.schedule import NoiseSchedule, ScheduleConfig, guided_model_fn
+from iarcs_env.schedule import NoiseSchedule, ScheduleConfig, guided_model_fn, standard_normal
 from iarcs_env.stats import DatasetStats
 
 GEOMETRY_DIM = 8
@@ -565,8 +565,7 @@ class ScenePrior:
         try:
             cond = self.floor_condition(floors)
             shape = (len(floors), self.num_slots, self.spec.feature_dim)
-            gen_device = generator.device if generator is not None else self.device
-            x_T = torch.randn(shape, generator=generator, device=gen_device).to(self.device)
+            x_T = standard_normal(shape, generator, self.device)
             return self.schedule.sample(self.model_fn(cond, guidance_scale, eps_fn), shape, num_steps=num_steps, eta=eta,
                                         generator=generator, x_T=x_T, return_trajectory=return_trajectory)
         finally:

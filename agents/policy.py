@@ -34,7 +34,7 @@ from torch import nn
 
 from iarcs_env.floorplan import FloorPlan
 from iarcs_env.scene import SceneBatch
-from iarcs_env.schedule import gaussian_log_prob
+from iarcs_env.schedule import gaussian_log_prob, standard_normal
 
 from .denoiser import ScenePrior
 
@@ -255,7 +255,7 @@ class DiffusionPolicy(nn.Module):
         if deterministic or self.eta == 0:
             x_prev = mean
         else:
-            x_prev = mean + std * torch.randn(mean.shape, generator=generator, dtype=mean.dtype, device=mean.device)
+            x_prev = mean + std * standard_normal(mean.shape, generator, mean.device, mean.dtype)
         return x_prev, gaussian_log_prob(x_prev, mean, std)  # std is already floored at MIN_STD
 
     @torch.no_grad()

@@ -32,7 +32,7 @@ from iarcs_env.scene import Layout, SceneBatch, floor_half_extents, scale_floor_
 from iarcs_env.schedule import NoiseSchedule
 from iarcs_env.stats import DatasetStats
 
-from .config import dataclass_from_dict, load_yaml_config
+from .config import check_device, dataclass_from_dict, load_yaml_config, resolve_device
 from .denoiser import DenoiserConfig, SceneDenoiser, ScenePrior, atomic_torch_save
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
@@ -101,6 +101,10 @@ class PretrainConfig:
     """Seed of initialisation, batches, noise and augmentation."""
     num_threads: int = 0
     """torch CPU threads (0: torch's default)."""
+    device: str = "auto"
+    """Where the network trains: ``auto`` (the first CUDA GPU torch sees, else the CPU), ``cpu``, ``cuda`` or
+    ``cuda:N``. Data and augmentation stay on the CPU; the seeded noise is drawn on the CPU too, so a run's
+    randomness does not depend on the device."""
     tensorboard: bool = True
     """Write TensorBoard scalars to ``out/tb``."""
     init_from: str = ""
@@ -110,6 +114,7 @@ class PretrainConfig:
 
     def __post_init__(self):
         get_room(self.room)
+        check_device(self.device)
         DenoiserConfig.from_preset(self.preset, **dict(self.model))
         for name in ("num_scenes", "steps", "batch_size", "checkpoint_every", "log_every", "eval_every"):
             if getattr(self, name) <= 0:
@@ -308,6 +313,7 @@ def train(cfg: PretrainConfig, layouts: Sequence[Layout] | None = None, max_step
     t_start = time.perf_counter()
     if cfg.num_threads > 0:
         torch.set_num_threads(cfg.num_threads)
+    device = resolve_device(cfg.device)
     spec = get_room(cfg.room)
     out = Path(cfg.out)
     out.mkdir(parents=True, exist_ok=True)
@@ -355,6 +361,9 @@ def train(cfg: PretrainConfig, layouts: Sequence[Layout] | None = None, max_step
     if init is not None:
         net.load_state_dict(init.denoiser.state_dict())
         log(f"initialised from {cfg.init_from}")
+    net.to(device)
+    if weights is not None:
+        weights = weights.to(device)
     ema = copy.deepcopy(net).eval().requires_grad_(False)
     opt = torch.optim.AdamW(net.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
     gen = torch.Generator().manual_seed(cfg.seed + 1)
@@ -367,7 +376,10 @@ def train(cfg: PretrainConfig, layouts: Sequence[Layout] | None = None, max_step
         step = int(saved["step"])
         gen.set_state(saved["rng"]["generator"])
         torch.set_rng_state(saved["rng"]["torch"])
+        if device.type == "cuda" and "cuda" in saved["rng"]:
+            torch.cuda.set_rng_state_all(saved["rng"]["cuda"])
         log(f"resumed {state_path} at step {step}")
+    log(f"training on {device}")
     result = TrainResult(step=step, resumed_from=step, out=out)
     stop = min(cfg.steps, max_steps) if max_steps is not None else cfg.steps
 
@@ -382,6 +394,8 @@ def train(cfg: PretrainConfig, layouts: Sequence[Layout] | None = None, max_step
         state = {"step": step, "model": net.state_dict(), "ema": ema.state_dict(), "optimizer": opt.state_dict(),
                  "rng": {"generator": gen.get_state(), "torch": torch.get_rng_state()},
                  "config": asdict(cfg), "stats": stats.to_json()}
+        if device.type == "cuda":
+            state["rng"]["cuda"] = torch.cuda.get_rng_state_all()
         atomic_torch_save(state, state_path)
         prior = ScenePrior(copy.deepcopy(ema), stats, NoiseSchedule(),
                            meta={"step": step, "preset": cfg.preset, "dataset": cfg.dataset, "room": spec.name})
@@ -395,7 +409,7 @@ def train(cfg: PretrainConfig, layouts: Sequence[Layout] | None = None, max_step
         with torch.no_grad():
             for i in range(0, len(val), 256):
                 idx = torch.arange(i, min(i + 256, len(val)))
-                x0, floor = encode_batch(spec, stats, *val.batch(idx))
+                x0, floor = (x.to(device) for x in encode_batch(spec, stats, *val.batch(idx)))
                 losses.append(schedule.training_loss(lambda x, t: ema(x, t, floor), x0, g, reduction="none"))
         return float(torch.cat(losses).mean())
 
@@ -410,10 +424,11 @@ def train(cfg: PretrainConfig, layouts: Sequence[Layout] | None = None, max_step
             if cfg.cond_drop_prob > 0:
                 keep = (torch.rand(x0.shape[0], generator=gen) >= cfg.cond_drop_prob).float()
                 floor = floor * keep[:, None, None]
+            x0, floor = x0.to(device), floor.to(device)
             lr = lr_at(step, cfg)
             for group in opt.param_groups:
                 group["lr"] = lr
-            low_t = torch.randint(0, cfg.max_timestep, (x0.shape[0],), generator=gen) if cfg.max_timestep else None
+            low_t = torch.randint(0, cfg.max_timestep, (x0.shape[0],), generator=gen).to(device) if cfg.max_timestep else None
             loss = schedule.training_loss(lambda x, t: net(x, t, floor), x0, gen, t=low_t, feature_weights=weights)
             opt.zero_grad(set_to_none=True)
             loss.backward()

@@ -19,7 +19,7 @@ import numpy as np
 import torch
 import yaml
 
-from .config import dataclass_from_dict, load_yaml_config
+from .config import check_device, dataclass_from_dict, load_yaml_config, resolve_device
 
 CHECKPOINT_DIR = "checkpoint"
 ADAPTERS_DIR = "adapters"
@@ -90,8 +90,15 @@ class TrainConfig:
     """Seeds everything (floor choice, policy noise, environment)."""
     num_threads: int = 0
     """torch threads (0: torch's default)."""
+    device: str = "auto"
+    """Where the policy runs: ``auto`` (the first CUDA GPU torch sees, else the CPU), ``cpu``, ``cuda`` or
+    ``cuda:N``. The environment, rewards and the seeded noise stay on the CPU; a run may resume on another
+    device."""
     out: str = "out/train/stage1_bedroom"
     """Run folder."""
+
+    def __post_init__(self):
+        check_device(self.device)
 
 
 def load_train_config(path, **overrides) -> TrainConfig:
@@ -138,6 +145,7 @@ def build(cfg: TrainConfig, tensorboard_log: Path | None = None, task_reward=Non
         src = policy.load_adapter(path, name="init")
         policy.add_adapter(cfg.adapter, init_from=src, adapted=cfg.adapt)
         policy.model.delete_adapter("scratch")
+    policy.to(resolve_device(cfg.device))  # before the optimiser is made over its parameters
     if task_reward is None:
         reward = CompositeReward.from_config(cfg.reward, stats=prior.stats)
     else:
@@ -171,7 +179,7 @@ def run(cfg: TrainConfig, progress: bool = True, log=print):
         now = dataclasses.asdict(cfg)
         defaults = dataclasses.asdict(TrainConfig())  # a key missing from an older run's config had its default
         changed = [k for k in now if k not in ("epochs", "out", "eval_every", "checkpoint_every", "export",
-                                               "best_tolerance")
+                                               "best_tolerance", "device")
                    and before.get(k, defaults[k]) != now[k]]
         if changed:
             raise ValueError(f"{out} holds a run with other settings ({', '.join(changed)}); use another out folder")

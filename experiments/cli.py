@@ -25,6 +25,13 @@ class CLIError(Exception):
     """A user error: printed as ``iarcs: error: <message>`` with exit status 2."""
 
 
+def add_device_option(parser: argparse.ArgumentParser, what: str) -> None:
+    """``--device``: where ``what`` runs (checked by :func:`agents.config.resolve_device`)."""
+    parser.add_argument("--device", default=None,
+                        help=f"where {what} runs: auto (a CUDA GPU when torch sees one, else the CPU), cpu, cuda "
+                             "or cuda:N (default: auto, or the config's)")
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="iarcs", description="iARCS: controllable 3D indoor scene generation with agentic RL.")

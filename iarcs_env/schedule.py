@@ -86,6 +86,16 @@ def gaussian_log_prob(x: torch.Tensor, mean: torch.Tensor, std: torch.Tensor) ->
     return lp.flatten(1).mean(1)
 
 
+def standard_normal(shape, generator: torch.Generator | None = None, device=None,
+                    dtype: torch.dtype = torch.float32) -> torch.Tensor:
+    """N(0, I) noise of ``shape`` on ``device``, drawn on the generator's own device and then moved: a seeded CPU
+    generator gives the same noise whether the model runs on the CPU or a GPU (torch cannot draw from a CPU
+    generator straight into GPU memory)."""
+    where = generator.device if generator is not None else device
+    x = torch.randn(shape, generator=generator, dtype=dtype, device=where)
+    return x if device is None else x.to(device)
+
+
 class NoiseSchedule:
     """Linear-beta DDPM schedule with epsilon prediction and DDIM sampling steps.
 
@@ -146,8 +156,11 @@ class NoiseSchedule:
 
     def sample_timesteps(self, batch_size: int, generator: torch.Generator | None = None,
                          device=None) -> torch.Tensor:
-        """Uniform training timesteps in [0, T)."""
-        return torch.randint(0, self.num_train_timesteps, (batch_size,), generator=generator, device=device)
+        """Uniform training timesteps in [0, T) on ``device``, drawn on the generator's device (see
+        :func:`standard_normal`)."""
+        where = generator.device if generator is not None else device
+        t = torch.randint(0, self.num_train_timesteps, (batch_size,), generator=generator, device=where)
+        return t if device is None else t.to(device)
 
     def training_loss(self, model_fn: Callable[[torch.Tensor, torch.Tensor], torch.Tensor], x0: torch.Tensor,
                       generator: torch.Generator | None = None, t: torch.Tensor | None = None,
@@ -163,7 +176,7 @@ class NoiseSchedule:
         if t is None:
             t = self.sample_timesteps(b, generator, device=x0.device)
         if noise is None:
-            noise = torch.randn(x0.shape, generator=generator, dtype=x0.dtype, device=x0.device)
+            noise = standard_normal(x0.shape, generator, x0.device, x0.dtype)
         x_t = self.q_sample(x0, t, noise)
         err = (model_fn(x_t, t) - noise) ** 2
         if feature_weights is not None:
@@ -232,7 +245,7 @@ class NoiseSchedule:
         if prev_sample is None:
             if eta > 0:
                 if noise is None:
-                    noise = torch.randn(x_t.shape, generator=generator, dtype=x_t.dtype, device=x_t.device)
+                    noise = standard_normal(x_t.shape, generator, x_t.device, x_t.dtype)
                 prev_sample = mean + std * noise
             else:
                 prev_sample = mean
@@ -248,7 +261,7 @@ class NoiseSchedule:
         see :func:`classifier_free_guidance`). Returns x_0, or ``(x_0, trajectory)`` where the trajectory
         is a dict of stacked ``states`` (S+1, B, ...), ``timesteps`` (S,), ``log_probs`` (S, B)."""
         self.set_timesteps(num_steps)
-        x = x_T if x_T is not None else torch.randn(shape, generator=generator, device=device, dtype=dtype)
+        x = x_T if x_T is not None else standard_normal(shape, generator, device, dtype)
         states, log_probs = [x], []
         for t in self.timesteps:
             tt = torch.full((x.shape[0],), int(t), dtype=torch.long, device=x.device)
@@ -290,4 +303,4 @@ def guided_model_fn(model: Callable[..., torch.Tensor], cond: torch.Tensor, guid
 
 
 __all__ = ["DDIMStepOutput", "MIN_STD", "NoiseSchedule", "ScheduleConfig", "classifier_free_guidance",
-           "gaussian_log_prob", "guided_model_fn"]
+           "gaussian_log_prob", "guided_model_fn", "standard_normal"]

@@ -28,7 +28,8 @@ def test_train_writes_a_complete_run_folder_and_resumes(tiny_run_config, tmp_pat
     assert [e["epoch"] for e in evals] == [1, 2] and 0 <= evals[0]["Col_obj"] <= 1
     assert any(p.name.startswith("events.out.tfevents") for p in (run / "tb").iterdir())
     capsys.readouterr()
-    assert main(["train", "--config", str(tiny_run_config), "--epochs", "3"]) == 0
+    # the device is not a setting of the run: a run resumes on another one
+    assert main(["train", "--config", str(tiny_run_config), "--epochs", "3", "--device", "cpu"]) == 0
     assert "resuming" in capsys.readouterr().out
     assert json.loads((run / "checkpoint" / "trainer.json").read_text())["epoch"] == 3
     evals = [json.loads(l) for l in (run / "eval.jsonl").read_text().splitlines()]
@@ -139,6 +140,9 @@ def test_bad_train_configs_are_clear(tmp_path, capsys):
     bad.write_text("best_tolerance: {R_out: -1}\n")
     assert main(["train", "--config", str(bad)]) == 2
     assert "R_out must be a number >= 0" in capsys.readouterr().err
+    bad.write_text("device: gpu\n")
+    assert main(["train", "--config", str(bad)]) == 2
+    assert f"{bad}: device 'gpu' is not one iARCS runs on; use auto, cpu, cuda or cuda:N" in capsys.readouterr().err
 
 
 @pytest.mark.parametrize("path", sorted((REPO / "experiments").rglob("*.yaml")), ids=lambda p: p.stem)

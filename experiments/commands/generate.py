@@ -16,6 +16,8 @@ import re
 import shutil
 from pathlib import Path
 
+from experiments.cli import add_device_option
+
 from .reward import add_agent_options
 
 TEMPLATE = Path(__file__).resolve().parents[1] / "task_two_nightstands.yaml"
@@ -37,6 +39,7 @@ def register(sub) -> None:
     p.add_argument("--epochs", type=int, default=100, help="stage-2 training epochs when no adapter exists (default 100)")
     p.add_argument("--retrain", action="store_true", help="train a new adapter even if the library has one")
     add_agent_options(p)
+    add_device_option(p, "training and sampling")
     p.set_defaults(func=cmd_generate)
 
 
@@ -67,7 +70,7 @@ def train_adapter(args, room: str, task: str | None, run_dir: Path) -> Path:
     if args.model:
         agent["llm"] = {"timeout": args.timeout}
     cfg = load_train_config(TEMPLATE, room=room, out=str(run_dir), epochs=args.epochs, adapter="task",
-                            export="best" if task else "last",
+                            export="best" if task else "last", device=args.device,
                             task={"constraint": args.constraint, "checker": task or "", "reflect_every": 10, **agent})
     run(cfg)
     return run_dir
@@ -76,6 +79,7 @@ def train_adapter(args, room: str, task: str | None, run_dir: Path) -> Path:
 def cmd_generate(args) -> int:
     import torch
 
+    from agents.config import resolve_device
     from agents.denoiser import ScenePrior
     from agents.policy import DiffusionPolicy
     from agents.train import ADAPTERS_DIR, stage1_adapter_path
@@ -90,6 +94,7 @@ def cmd_generate(args) -> int:
         raise CLIError("--num-scenes and --epochs must be positive")
     if not args.constraint.strip():
         raise CLIError('--constraint is empty; e.g. --constraint "A wheelchair-accessible bedroom"')
+    device = resolve_device(args.device or "auto")  # a clear error before any work
     task = args.task or matching_task(args.constraint)
     if task:
         get_task(task)  # a clear error for an unknown name
@@ -114,6 +119,7 @@ def cmd_generate(args) -> int:
         policy.load_adapter(stage1_adapter_path(room), "stage1")
         variants.append(("stage 1", "stage1"))
     policy.load_adapter(lib / "adapter", "task")
+    policy.to(device)
     variants.append(("with the task adapter", "task"))
     floors = generation_floors(room, args.num_scenes, args.seed, args.floors)
     shown = floors[:COMPARED_SCENES]  # the comparison; every scene is sampled with the adapter

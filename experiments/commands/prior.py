@@ -4,6 +4,8 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from experiments.cli import add_device_option
+
 
 def register(sub) -> None:
     p = sub.add_parser("pretrain", help="pretrain a floor-conditioned scene prior (resumes an interrupted run)")
@@ -12,6 +14,7 @@ def register(sub) -> None:
     p.add_argument("--steps", type=int, default=None, help="total optimizer steps (default: the config's)")
     p.add_argument("--no-resume", action="store_true",
                    help="refuse to continue an existing run in the output folder (default: resume it)")
+    add_device_option(p, "the network trains")
     p.set_defaults(func=cmd_pretrain)
 
     p = sub.add_parser("sample", help="sample scenes from a scene prior as neutral JSON layouts")
@@ -30,6 +33,7 @@ def register(sub) -> None:
     p.add_argument("--eta", type=float, default=1.0, help="DDIM eta: 0 deterministic, 1 DDPM-like (default 1)")
     p.add_argument("--guidance", type=float, default=1.0, help="classifier-free guidance scale (default 1: none)")
     p.add_argument("--batch-size", type=int, default=256, help="scenes per sampling batch (default 256)")
+    add_device_option(p, "the denoiser")
     p.set_defaults(func=cmd_sample)
 
 
@@ -39,7 +43,7 @@ def cmd_pretrain(args) -> int:
 
     if args.steps is not None and args.steps <= 0:
         raise CLIError(f"--steps must be a positive number, got {args.steps}")
-    cfg = load_config(args.config, out=args.out, steps=args.steps)
+    cfg = load_config(args.config, out=args.out, steps=args.steps, device=args.device)
     out = Path(cfg.out)
     if args.no_resume and (out / STATE_FILE).exists():
         raise CLIError(f"{out} already holds a run ({STATE_FILE}); drop --no-resume to continue it, or choose "
@@ -58,6 +62,7 @@ def cmd_sample(args) -> int:
     from dataclasses import replace
 
     from experiments.cli import CLIError
+    from agents.config import resolve_device
     from agents.denoiser import ScenePrior
     from iarcs_env.datasets import load_layouts, save_layouts
     from iarcs_env.rooms import get_room
@@ -73,6 +78,7 @@ def cmd_sample(args) -> int:
         raise CLIError(f"--steps must be at most 1000 (the training timesteps), got {args.steps}")
     if args.eta < 0:
         raise CLIError(f"--eta must be >= 0, got {args.eta}")
+    device = resolve_device(args.device or "auto")
 
     policy = None  # with an adapter: sample through the policy's eps (its reference's on the features it leaves)
     if args.checkpoint and (Path(args.checkpoint) / "adapter_config.json").exists():
@@ -96,6 +102,7 @@ def cmd_sample(args) -> int:
     if prior.spec.name != spec.name:
         raise CLIError(f"{args.checkpoint or 'the prior'} is a {prior.spec.name} prior but --room is {spec.name}; "
                        f"pass --room {prior.spec.name} or a {spec.name} checkpoint")
+    prior.to(device)
 
     if args.floors:
         rooms = load_layouts(args.floors, spec.name)
