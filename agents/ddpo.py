@@ -22,6 +22,7 @@ import numpy as np
 import torch
 from tensordict import TensorDict
 
+from . import distributed
 from .callbacks import HIGHER_IS_BETTER, LOWER_IS_BETTER, as_callback, render_grid_tensor
 from .policy import DiffusionPolicy
 
@@ -112,12 +113,14 @@ class DDPO:
                                            betas=(cfg.adam_beta1, cfg.adam_beta2),
                                            weight_decay=cfg.adam_weight_decay, eps=cfg.adam_epsilon)
         self.loss_module = self._make_loss()
-        self.rng = np.random.default_rng(cfg.seed)
-        self.generator = torch.Generator().manual_seed(cfg.seed)
+        self._seed = distributed.rank_seed(cfg.seed)  # cfg.seed in a one-process run
+        self.rng = np.random.default_rng(self._seed)
+        self.generator = torch.Generator().manual_seed(self._seed)
         self.epoch = 0
         self.num_timesteps = 0
         self._env_seeded = False
-        self.tensorboard_log = Path(tensorboard_log) if tensorboard_log else None
+        self.tensorboard_log = Path(tensorboard_log) if tensorboard_log and distributed.is_main() else None
+        distributed.broadcast_parameters(policy.trainable_parameters())  # every rank starts from rank 0's adapter
         self._writer = None
 
     # --- loss ------------------------------------------------------------------------------------------
@@ -149,7 +152,7 @@ class DDPO:
         n_floors = venv.num_envs // cfg.samples_per_floor
         picked = self.rng.choice(len(venv.floors), n_floors, replace=n_floors > len(venv.floors))
         floor_idx = np.repeat(picked, cfg.samples_per_floor)
-        seed = None if self._env_seeded else cfg.seed
+        seed = None if self._env_seeded else self._seed
         self._env_seeded = True
         obs, _ = self.env.reset(seed=seed, options={"floor_indices": floor_idx})
         steps = []
@@ -180,13 +183,16 @@ class DDPO:
         """A = (r - mean) / (std + 1e-8) per floor plan (or per batch), clipped to +-adv_clip_max.
 
         With ``per_term_advantages`` and the composite's per-term values ``terms`` (B, K), r is replaced by
-        ``sum_k w_k z_k`` where z_k is term k standardised the same way."""
+        ``sum_k w_k z_k`` where z_k is term k standardised the same way. Under ``torchrun`` the statistics are
+        those of every rank's scenes; the result is this rank's part."""
+        rewards, floor_index = distributed.all_gather(rewards), distributed.all_gather(floor_index)
+        terms = distributed.all_gather(terms) if terms is not None else None
         if self.config.per_term_advantages and terms is not None:
             weights = torch.tensor(list(self.venv.reward_fn.weights.values()), dtype=torch.float64)
             z = torch.stack([self._standardise(terms[:, k], floor_index) for k in range(terms.shape[1])], 1)
             rewards = (z * weights).sum(1)
         c = self.config.adv_clip_max
-        return self._standardise(rewards, floor_index).clamp(-c, c).float()
+        return distributed.local_part(self._standardise(rewards, floor_index).clamp(-c, c).float())
 
     def _standardise(self, values: torch.Tensor, floor_index: torch.Tensor) -> torch.Tensor:
         r = values.double()
@@ -223,6 +229,7 @@ class DDPO:
                     info["kl_to_base"] = float(kl)
                 self.optimizer.zero_grad(set_to_none=True)
                 loss.backward()
+                distributed.average_gradients(self.policy.trainable_parameters())
                 info["grad_norm"] = float(torch.nn.utils.clip_grad_norm_(self.policy.trainable_parameters(),
                                                                          cfg.max_grad_norm))
                 self.optimizer.step()
@@ -253,17 +260,19 @@ class DDPO:
     def learn(self, total_timesteps: int, callback=None, progress_bar: bool = False,
               reset_num_timesteps: bool = False) -> "DDPO":
         """Train until ``num_timesteps`` (environment transitions: scenes x DDIM steps) reaches
-        ``total_timesteps``. Continues from the current counters (resume after :meth:`load`)."""
+        ``total_timesteps``. Continues from the current counters (resume after :meth:`load`). Under
+        ``torchrun`` the counters are per rank, and the callbacks and the progress bar run on rank 0 only."""
         from tqdm import tqdm
 
         if reset_num_timesteps:
             self.num_timesteps, self.epoch = 0, 0
-        cb = as_callback(callback)
+        main = distributed.is_main()
+        cb = as_callback(callback if main else None)
         cb.init_callback(self)
         cb.on_training_start()
         self._log_hparams()
         bar = tqdm(total=total_timesteps, initial=min(self.num_timesteps, total_timesteps), unit="step",
-                   desc=self.name, disable=not progress_bar)
+                   desc=self.name, disable=not (progress_bar and main))
         while self.num_timesteps < total_timesteps:
             t0 = time.perf_counter()
             before = self.num_timesteps
@@ -274,8 +283,12 @@ class DDPO:
             rollout["advantage"] = self.compute_advantages(rewards, rollout["floor_index"][:, 0], terms)[:, None, None] \
                 .expand(-1, rollout.batch_size[1], 1).clone()
             t1 = time.perf_counter()
-            stats = {"reward_mean": float(rewards.mean()), "reward_std": float(rewards.std()),
-                     **{f"reward_{k}": float(np.mean(v)) for k, v in self._last_terms.items()}}
+            everyone = distributed.all_gather(rewards)  # the statistics of every rank's scenes
+            stats = {"reward_mean": float(everyone.mean()), "reward_std": float(everyone.std())}
+            if self._last_terms:
+                means = torch.tensor([[np.mean(v) for v in self._last_terms.values()]], dtype=torch.float64)
+                stats.update({f"reward_{k}": float(m)
+                              for k, m in zip(self._last_terms, distributed.all_gather(means).mean(0))})
             cb.on_rollout_end(stats)
             stats.update(self.train(rollout))
             self.epoch += 1
@@ -284,13 +297,31 @@ class DDPO:
             self._log(stats)
             bar.update(self.num_timesteps - before)
             bar.set_postfix(reward=f"{stats['reward_mean']:.3f}", kl=f"{stats['approx_kl']:.1e}")
-            if not cb.on_step(stats):
+            keep_going = distributed.broadcast_object(cb.on_step(stats))
+            self._sync_reward()
+            if not keep_going:
                 break
         bar.close()
         cb.on_training_end()
         if self._writer:
             self._writer.flush()
         return self
+
+    def _sync_reward(self) -> None:
+        """Under ``torchrun`` the callbacks run on rank 0 only; the reward they may change (reflection swaps the
+        task program and its weight) is copied from there to the other ranks."""
+        if distributed.world_size() == 1:
+            return
+        fn = self.venv.reward_fn
+        programs = {name: f.code for name, f in getattr(fn, "functions", {}).items() if hasattr(f, "load")}
+        state = distributed.broadcast_object({"weights": getattr(fn, "weights", None), "programs": programs})
+        if distributed.is_main():
+            return
+        if state["weights"] is not None:
+            fn.weights.update(state["weights"])
+        for name, code in state["programs"].items():
+            if fn.functions[name].code != code:
+                fn.functions[name].load(code)
 
     def predict(self, observation: dict, deterministic: bool = False) -> tuple[np.ndarray, None]:
         """The next state x_{t-1} for an observation (batched or not), as numpy, SB3-style ``(action, None)``."""
@@ -417,6 +448,11 @@ class DDPO:
         model.generator.set_state(state["generator"])
         model.venv.np_random.bit_generator.state = state["env_rng"]
         model._env_seeded = state["env_seeded"]
+        if distributed.rank() > 0:  # rank 0's streams were saved; the others start new ones from here
+            model._seed = distributed.rank_seed(model.config.seed) + model.epoch
+            model.rng = np.random.default_rng(model._seed)
+            model.generator.manual_seed(model._seed)
+            model._env_seeded = False
         return model
 
 

@@ -19,7 +19,8 @@ import numpy as np
 import torch
 import yaml
 
-from .config import check_device, dataclass_from_dict, load_yaml_config, resolve_device
+from . import distributed
+from .config import check_device, dataclass_from_dict, load_yaml_config
 
 CHECKPOINT_DIR = "checkpoint"
 ADAPTERS_DIR = "adapters"
@@ -145,7 +146,7 @@ def build(cfg: TrainConfig, tensorboard_log: Path | None = None, task_reward=Non
         src = policy.load_adapter(path, name="init")
         policy.add_adapter(cfg.adapter, init_from=src, adapted=cfg.adapt)
         policy.model.delete_adapter("scratch")
-    policy.to(resolve_device(cfg.device))  # before the optimiser is made over its parameters
+    policy.to(distributed.setup(cfg.device))  # before the optimiser is made over its parameters
     if task_reward is None:
         reward = CompositeReward.from_config(cfg.reward, stats=prior.stats)
     else:
@@ -159,7 +160,8 @@ def build(cfg: TrainConfig, tensorboard_log: Path | None = None, task_reward=Non
 
 
 def run(cfg: TrainConfig, progress: bool = True, log=print):
-    """Train (resuming ``cfg.out/checkpoint`` when it exists); returns the algorithm."""
+    """Train (resuming ``cfg.out/checkpoint`` when it exists); returns the algorithm. Started by ``torchrun``,
+    every process runs this and rank 0 alone writes the run folder (:mod:`agents.distributed`)."""
     from iarcs_env.env import default_floors
 
     from .callbacks import CheckpointCallback, EvalCallback, check_best_tolerance
@@ -170,11 +172,17 @@ def run(cfg: TrainConfig, progress: bool = True, log=print):
     check_best_tolerance(cfg.best_tolerance)
     if cfg.num_threads:
         torch.set_num_threads(cfg.num_threads)
+    device = distributed.setup(cfg.device)
+    main = distributed.is_main()
+    if not main:
+        progress, log = False, lambda *args, **kwargs: None
+    elif distributed.world_size() > 1:
+        log(f"{distributed.world_size()} processes ({device} on rank 0), {cfg.num_envs} scenes each per rollout batch")
     out = Path(cfg.out)
     out.mkdir(parents=True, exist_ok=True)
     ckpt = out / CHECKPOINT_DIR
     saved = out / "config.yaml"
-    if DDPO.latest_checkpoint(ckpt) and saved.exists():
+    if main and DDPO.latest_checkpoint(ckpt) and saved.exists():
         before = yaml.safe_load(saved.read_text())
         now = dataclasses.asdict(cfg)
         defaults = dataclasses.asdict(TrainConfig())  # a key missing from an older run's config had its default
@@ -183,16 +191,19 @@ def run(cfg: TrainConfig, progress: bool = True, log=print):
                    and before.get(k, defaults[k]) != now[k]]
         if changed:
             raise ValueError(f"{out} holds a run with other settings ({', '.join(changed)}); use another out folder")
-    saved.write_text(yaml.safe_dump(dataclasses.asdict(cfg), sort_keys=False))
     resume = DDPO.latest_checkpoint(ckpt)
-    task = _setup_task(cfg, out, resume, log) if cfg.task else None
+    if main:
+        saved.write_text(yaml.safe_dump(dataclasses.asdict(cfg), sort_keys=False))
+    task = None
+    if cfg.task:
+        task = _share_task(cfg, _setup_task(cfg, out, resume, log) if main else None)
     algo, policy, env = build(cfg, tensorboard_log=out / "tb", **({} if task is None else task["build"]))
     if resume:
         algo = DDPO.load(ckpt, policy, env, tensorboard_log=out / "tb")
         log(f"resuming {out} at epoch {algo.epoch}")
     eval_floors = default_floors(cfg.room, count=cfg.eval_floors, seed=cfg.eval_seed)
-    callbacks = [CheckpointCallback(cfg.checkpoint_every, ckpt)]
-    if task is not None:
+    callbacks = [CheckpointCallback(cfg.checkpoint_every, ckpt)]  # (DDPO runs callbacks on rank 0 only)
+    if task is not None and task["reflection"] is not None:
         callbacks.append(task["reflection"])
     metrics = {} if task is None else task["metrics"]
     best_key = next(iter(metrics), "reward")  # the task's success rate, if it has a checker
@@ -205,6 +216,8 @@ def run(cfg: TrainConfig, progress: bool = True, log=print):
     finally:
         if task is not None:
             task["reward"].sandbox.close()
+    if not main:
+        return algo
     export_adapter(cfg, policy, out, log)
     if task is not None:
         from .stage2 import save_task_outputs
@@ -258,6 +271,21 @@ def _setup_task(cfg: TrainConfig, out: Path, resume: Path | None, log) -> dict:
                                     fixed_weight=tcfg.weight)
     return {"build": {"task_reward": reward, "task_weight": tcfg.weight or proposal.weight}, "reward": reward,
             "agent": agent, "memory": memory, "metrics": metrics, "reflection": reflection}
+
+
+def _share_task(cfg: TrainConfig, task: dict | None) -> dict:
+    """Under ``torchrun``: rank 0 set the task up (``task``); the other ranks run its reward program in their own
+    sandboxes and leave reflection to rank 0, which sends them each new program (``DDPO._sync_reward``)."""
+    if distributed.world_size() == 1:
+        return task
+    code, weight = distributed.broadcast_object((task["reward"].code, task["build"]["task_weight"]) if task else None)
+    if task is not None:
+        return task
+    from rewards.sandbox import SandboxedReward
+
+    reward = SandboxedReward(code, room=cfg.room)
+    return {"build": {"task_reward": reward, "task_weight": weight}, "reward": reward, "metrics": {},
+            "reflection": None}
 
 
 def load_trained_policy(run_dir: str | Path):

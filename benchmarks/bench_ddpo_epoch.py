@@ -27,7 +27,8 @@ from iarcs_env.env import default_floors, default_stats
 from rewards.composite import CompositeReward
 
 
-def measure(preset: str, scenes: int, minibatch: int, steps: int = 20) -> dict:
+def make_algo(preset: str, scenes: int, minibatch: int, steps: int = 20) -> DDPO:
+    """DDPO-IS on a random-weight bedroom prior of ``preset`` with ``scenes`` environments and the universal reward."""
     torch.manual_seed(0)
     stats = default_stats("bedroom")
     prior = ScenePrior.create("bedroom", stats, preset)
@@ -39,8 +40,12 @@ def measure(preset: str, scenes: int, minibatch: int, steps: int = 20) -> dict:
     reward = CompositeReward.universal(stats)
     env = gym.make_vec("iARCS-Bedroom-v0", num_envs=scenes, vectorization_mode="vector_entry_point",
                        floors=default_floors("bedroom", 64), stats=stats, reward=reward, num_steps=steps)
-    algo = DDPO(policy, env, verbose=0, minibatch_size=minibatch, samples_per_floor=4)
+    return DDPO(policy, env, verbose=0, minibatch_size=minibatch, samples_per_floor=4)
 
+
+def measure(preset: str, scenes: int, minibatch: int, steps: int = 20) -> dict:
+    algo = make_algo(preset, scenes, minibatch, steps)
+    policy, reward, prior, stats = algo.policy, algo.venv.reward_fn, algo.policy.prior, algo.policy.prior.stats
     t0 = time.perf_counter()
     rollout = algo.collect_rollouts()  # includes the reward, timed again below
     t1 = time.perf_counter()

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import os
 import sys
 
 #: Modules whose ``register(subparsers)`` adds sub-commands, in the order --help lists them.
@@ -54,6 +55,9 @@ def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     try:
+        if args.command != "train" and int(os.environ.get("WORLD_SIZE", "1")) > 1:
+            raise CLIError(f"iarcs {args.command} runs in one process; of the commands only `iarcs train` runs "
+                           "data-parallel under torchrun (agents/distributed.py)")
         result = args.func(args)
     except user_errors() as err:
         print(f"iarcs: error: {err}", file=sys.stderr)

@@ -15,12 +15,19 @@ def register(sub) -> None:
 
 
 def cmd_train(args) -> int:
+    from agents import distributed
     from agents.train import load_train_config, run
     from experiments.cli import CLIError
 
     if args.epochs is not None and args.epochs <= 0:
         raise CLIError(f"--epochs must be positive, got {args.epochs}")
     cfg = load_train_config(args.config, out=args.out, epochs=args.epochs, device=args.device)
-    algo = run(cfg)
-    print(f"{algo.name}: {algo.epoch} epochs, {algo.num_timesteps} environment steps; run folder {cfg.out}")
+    try:
+        algo = run(cfg)
+        main, processes = distributed.is_main(), distributed.world_size()
+    finally:
+        distributed.cleanup()
+    if main:  # under torchrun, rank 0 reports
+        each = f" in each of {processes} processes" if processes > 1 else ""
+        print(f"{algo.name}: {algo.epoch} epochs, {algo.num_timesteps} environment steps{each}; run folder {cfg.out}")
     return 0

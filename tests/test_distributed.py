@@ -1,0 +1,93 @@
+"""Data-parallel training under real ``torchrun`` processes (2 CPU processes talking through gloo): averaged
+gradients, advantages over every rank's scenes, one adapter on every rank, one run folder, resuming."""
+
+import json
+import os
+import subprocess
+import sys
+
+import torch
+
+from iarcs_env.tasks import get_task
+from rewards.memory import EvolutionMemory
+from conftest import REPO, write_tiny_train_config
+
+
+def torchrun(*args: str, processes: int = 2) -> subprocess.CompletedProcess:
+    env = {**os.environ, "OMP_NUM_THREADS": "1", "PYTHONPATH": str(REPO / "tests")}
+    cmd = [sys.executable, "-m", "torch.distributed.run", "--standalone", f"--nproc_per_node={processes}", *args]
+    done = subprocess.run(cmd, cwd=REPO, env=env, capture_output=True, text=True, timeout=600)
+    assert done.returncode == 0, f"torchrun failed ({done.returncode}):\n{done.stdout[-3000:]}\n{done.stderr[-3000:]}"
+    return done
+
+
+def test_ranks_average_gradients_share_advantages_and_keep_one_adapter(tmp_path):
+    from test_ddpo import make_model
+
+    torchrun(str(REPO / "tests" / "distributed_worker.py"), str(tmp_path))
+    ranks = [torch.load(tmp_path / f"rank{r}.pt", weights_only=False) for r in range(2)]
+
+    # the mean of the two half-batch gradients is the whole batch's gradient, on both ranks
+    assert any(float(g.abs().max()) > 0 for g in ranks[0]["averaged"])
+    for rank in ranks:
+        for avg, whole in zip(rank["averaged"], rank["whole"]):
+            torch.testing.assert_close(avg, whole, rtol=1e-4, atol=1e-7)
+
+    # the advantages are those one process computes over both ranks' rewards
+    one = make_model().compute_advantages(torch.cat([r["rewards"] for r in ranks]),
+                                          torch.cat([r["floor_index"] for r in ranks]))
+    torch.testing.assert_close(torch.cat([r["advantages"] for r in ranks]), one)
+    assert not torch.allclose(ranks[0]["advantages"], ranks[1]["advantages"])
+
+    # the ranks collected different scenes but trained one adapter, which moved
+    assert ranks[0]["epoch"] == ranks[1]["epoch"] == 2
+    assert not torch.allclose(ranks[0]["scene"], ranks[1]["scene"])
+    for name, value in ranks[0]["after"].items():
+        torch.testing.assert_close(ranks[1]["after"][name], value, rtol=0, atol=0)
+    assert any(not torch.equal(ranks[0]["before"][k], v) for k, v in ranks[0]["after"].items())
+
+    # rank 0's reflection (a new task program, a new weight) reached rank 1
+    from distributed_worker import NIGHTSTANDS
+
+    assert ranks[1]["reward"] == ranks[0]["reward"] == {"code": NIGHTSTANDS,
+                                                        "weights": {"collision": 1.0, "task": 2.5}}
+
+
+def test_torchrun_train_writes_one_run_folder_and_resumes(tmp_path):
+    config = write_tiny_train_config(tmp_path)
+    done = torchrun("-m", "experiments.cli", "train", "--config", str(config), "--device", "cpu")
+    assert "2 processes (cpu on rank 0), 8 scenes each per rollout batch" in done.stdout
+    assert done.stdout.count("DDPO-IS: 2 epochs") == 1  # rank 0 reports, once
+    run = tmp_path / "run"
+    assert (run / "adapters" / "stage1" / "adapter_config.json").exists()
+    assert json.loads((run / "checkpoint" / "trainer.json").read_text())["epoch"] == 2
+    evals = [json.loads(line) for line in (run / "eval.jsonl").read_text().splitlines()]
+    assert [e["epoch"] for e in evals] == [1, 2]  # evaluated by rank 0 alone
+    assert len([p for p in (run / "tb").iterdir() if p.name.startswith("events.out.tfevents")]) == 1
+
+    done = torchrun("-m", "experiments.cli", "train", "--config", str(config), "--epochs", "3")
+    assert "resuming" in done.stdout
+    assert json.loads((run / "checkpoint" / "trainer.json").read_text())["epoch"] == 3
+    assert [json.loads(line)["epoch"] for line in (run / "eval.jsonl").read_text().splitlines()] == [1, 2, 3]
+
+
+def test_torchrun_stage2_reflects_on_rank_0_only(tmp_path):
+    config = write_tiny_train_config(tmp_path, adapter="two_nightstands", epochs=4, eval_every=2,
+                                     task={"checker": "two_nightstands", "reflect_every": 2})
+    torchrun("-m", "experiments.cli", "train", "--config", str(config))
+    run = tmp_path / "run"
+    memory = json.loads((run / "reward_memory.json").read_text())
+    assert [(e["kind"], e["epoch"]) for e in memory["entries"]] == [("synthesize", 0), ("reflect", 2), ("reflect", 4)]
+    current = EvolutionMemory.open(run / "reward_memory.json", get_task("two_nightstands").prompt, "bedroom").current()
+    assert (run / "reward" / "program.py").read_text() == current.code
+    assert (run / "adapters" / "two_nightstands" / "adapter_config.json").exists()
+
+
+def test_other_commands_refuse_to_run_under_torchrun(monkeypatch, tmp_path, capsys):
+    from experiments.cli import main
+
+    monkeypatch.setenv("WORLD_SIZE", "2")  # what torchrun sets in each process it starts
+    assert main(["sample", "--num-scenes", "2", "--out", str(tmp_path / "s.json")]) == 2
+    assert "iarcs sample runs in one process; of the commands only `iarcs train` runs data-parallel" in \
+        capsys.readouterr().err
+    assert not (tmp_path / "s.json").exists()
