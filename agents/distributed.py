@@ -1,11 +1,12 @@
-"""Data-parallel RL fine-tuning over processes started by ``torchrun`` (one per GPU, or several on a CPU).
+"""Data-parallel training over processes started by ``torchrun`` (one per GPU, or several on a CPU).
 
-``torchrun --nproc_per_node=P -m experiments.cli train --config ...`` runs P copies of the trainer. Each
+``torchrun --nproc_per_node=P -m experiments.cli train --config ...`` runs P copies of the RL trainer. Each
 process (rank) collects its own ``num_envs`` scenes per rollout batch with its own random streams, so one
 update sees P x ``num_envs`` scenes; advantages are standardised over the scenes of every rank (the same
 floor plan drawn on two ranks is one group); the LoRA gradients are averaged across ranks after every
 backward pass, so every rank holds the same adapter; only rank 0 writes (checkpoints, TensorBoard,
-evaluations, the exported adapter). GPUs talk through NCCL, CPU processes through gloo.
+evaluations, the exported adapter). ``iarcs pretrain`` under ``torchrun`` splits each batch over the ranks
+and averages the denoiser's gradients the same way. GPUs talk through NCCL, CPU processes through gloo.
 
 Without ``torchrun`` (no ``WORLD_SIZE`` in the environment) every function here is the single-process
 identity, so the trainer's code reads the same either way.

@@ -32,7 +32,8 @@ from iarcs_env.scene import Layout, SceneBatch, floor_half_extents, scale_floor_
 from iarcs_env.schedule import NoiseSchedule
 from iarcs_env.stats import DatasetStats
 
-from .config import check_device, dataclass_from_dict, load_yaml_config, resolve_device
+from . import distributed
+from .config import check_device, dataclass_from_dict, load_yaml_config
 from .denoiser import DenoiserConfig, SceneDenoiser, ScenePrior, atomic_torch_save
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
@@ -63,7 +64,7 @@ class PretrainConfig:
     steps: int = 6000
     """Total optimizer steps of the run (a resumed run continues up to this)."""
     batch_size: int = 128
-    """Scenes per optimizer step."""
+    """Scenes per optimizer step (under ``torchrun``: in all, split evenly over the processes)."""
     lr: float = 5e-4
     """Peak learning rate of AdamW."""
     min_lr_ratio: float = 0.1
@@ -307,13 +308,20 @@ def train(cfg: PretrainConfig, layouts: Sequence[Layout] | None = None, max_step
           progress: bool = True, log: Callable[[str], None] = print, resume: bool = True) -> TrainResult:
     """Train (or resume) the prior of ``cfg``; stops at ``cfg.steps`` or, earlier, at ``max_steps``
     (the global step to stop at, as if the run were interrupted there). ``layouts`` overrides the
-    dataset of the config (tests pass hand-made rooms)."""
+    dataset of the config (tests pass hand-made rooms). Under ``torchrun`` every process draws its share of
+    each batch, the gradients are averaged, and rank 0 alone writes (:mod:`agents.distributed`)."""
     from tqdm import tqdm
 
     t_start = time.perf_counter()
     if cfg.num_threads > 0:
         torch.set_num_threads(cfg.num_threads)
-    device = resolve_device(cfg.device)
+    device = distributed.setup(cfg.device)
+    main, processes = distributed.is_main(), distributed.world_size()
+    if cfg.batch_size % processes:
+        raise ValueError(f"batch_size {cfg.batch_size} does not split evenly over {processes} processes; make it a "
+                         f"multiple of {processes}")
+    if not main:
+        progress, log = False, lambda *args, **kwargs: None
     spec = get_room(cfg.room)
     out = Path(cfg.out)
     out.mkdir(parents=True, exist_ok=True)
@@ -345,8 +353,9 @@ def train(cfg: PretrainConfig, layouts: Sequence[Layout] | None = None, max_step
         if init is not None:  # the network's inputs keep the scaling it was trained with
             for name in ("bounds_translations", "bounds_sizes", "bounds_angles", "translation_frame"):
                 setattr(stats, name, copy.deepcopy(getattr(init.stats, name)))
-        stats.save(out / "dataset_stats.json")
-        _write_yaml(out / "config.yaml", asdict(cfg))
+        if main:
+            stats.save(out / "dataset_stats.json")
+            _write_yaml(out / "config.yaml", asdict(cfg))
     data = SceneTensors.from_layouts(train_layouts, spec.max_objects)
     val = SceneTensors.from_layouts(val_layouts, spec.max_objects) if val_layouts else None
 
@@ -362,11 +371,12 @@ def train(cfg: PretrainConfig, layouts: Sequence[Layout] | None = None, max_step
         net.load_state_dict(init.denoiser.state_dict())
         log(f"initialised from {cfg.init_from}")
     net.to(device)
+    distributed.broadcast_parameters(net.parameters())  # one initialisation on every rank
     if weights is not None:
         weights = weights.to(device)
     ema = copy.deepcopy(net).eval().requires_grad_(False)
     opt = torch.optim.AdamW(net.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
-    gen = torch.Generator().manual_seed(cfg.seed + 1)
+    gen = torch.Generator().manual_seed(distributed.rank_seed(cfg.seed + 1))  # each rank its own batches
     schedule = NoiseSchedule()
     step = 0
     if saved is not None:
@@ -378,17 +388,20 @@ def train(cfg: PretrainConfig, layouts: Sequence[Layout] | None = None, max_step
         torch.set_rng_state(saved["rng"]["torch"])
         if device.type == "cuda" and "cuda" in saved["rng"]:
             torch.cuda.set_rng_state_all(saved["rng"]["cuda"])
+        if not main:  # rank 0's streams were saved; the others start new ones from here
+            gen.manual_seed(distributed.rank_seed(cfg.seed + 1) + step)
         log(f"resumed {state_path} at step {step}")
-    log(f"training on {device}")
+    log(f"training on {device}" + (f", {processes} processes of {cfg.batch_size // processes} scenes per step"
+                                   if processes > 1 else ""))
     result = TrainResult(step=step, resumed_from=step, out=out)
     stop = min(cfg.steps, max_steps) if max_steps is not None else cfg.steps
 
     writer = None
-    if cfg.tensorboard:
+    if cfg.tensorboard and main:
         from torch.utils.tensorboard import SummaryWriter
 
         writer = SummaryWriter(str(out / "tb"), purge_step=step if step else None)
-    metrics = (out / "metrics.jsonl").open("a")
+    metrics = (out / "metrics.jsonl").open("a") if main else None
 
     def save_checkpoint():
         state = {"step": step, "model": net.state_dict(), "ema": ema.state_dict(), "optimizer": opt.state_dict(),
@@ -418,7 +431,7 @@ def train(cfg: PretrainConfig, layouts: Sequence[Layout] | None = None, max_step
     net.train()
     try:
         while step < stop:
-            idx = torch.randint(0, len(data), (cfg.batch_size,), generator=gen)
+            idx = torch.randint(0, len(data), (cfg.batch_size // processes,), generator=gen)
             batch = data.batch(idx, gen, rotate=cfg.rotation_augment, permute=cfg.permutation_augment)
             x0, floor = encode_batch(spec, stats, *batch)
             if cfg.cond_drop_prob > 0:
@@ -432,6 +445,7 @@ def train(cfg: PretrainConfig, layouts: Sequence[Layout] | None = None, max_step
             loss = schedule.training_loss(lambda x, t: net(x, t, floor), x0, gen, t=low_t, feature_weights=weights)
             opt.zero_grad(set_to_none=True)
             loss.backward()
+            distributed.average_gradients(net.parameters())
             grad_norm = torch.nn.utils.clip_grad_norm_(net.parameters(), cfg.grad_clip if cfg.grad_clip > 0 else
                                                        float("inf"))
             opt.step()
@@ -440,11 +454,11 @@ def train(cfg: PretrainConfig, layouts: Sequence[Layout] | None = None, max_step
                 for pe, p in zip(ema.parameters(), net.parameters()):
                     pe.lerp_(p, 1 - decay)
             step += 1
-            value = loss.item()
+            value = float(distributed.all_gather(loss.detach().reshape(1)).mean())  # the whole batch's loss
             result.losses.append((step, value))
             running = value if running is None else 0.98 * running + 0.02 * value
             bar.update(1)
-            if step % cfg.log_every == 0 or step == stop:
+            if main and (step % cfg.log_every == 0 or step == stop):
                 bar.set_postfix(loss=f"{running:.4f}", lr=f"{lr:.2e}")
                 record = {"step": step, "loss": value, "loss_avg": running, "lr": lr, "grad_norm": float(grad_norm)}
                 if writer is not None:
@@ -461,11 +475,12 @@ def train(cfg: PretrainConfig, layouts: Sequence[Layout] | None = None, max_step
                             writer.add_scalar("val/loss_ema", v, step)
                 metrics.write(json.dumps(record) + "\n")
                 metrics.flush()
-            if step % cfg.checkpoint_every == 0 or step == stop:
+            if main and (step % cfg.checkpoint_every == 0 or step == stop):
                 save_checkpoint()
     finally:
         bar.close()
-        metrics.close()
+        if metrics is not None:
+            metrics.close()
         if writer is not None:
             writer.close()
     result.step = step

@@ -55,8 +55,8 @@ def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     try:
-        if args.command != "train" and int(os.environ.get("WORLD_SIZE", "1")) > 1:
-            raise CLIError(f"iarcs {args.command} runs in one process; of the commands only `iarcs train` runs "
+        if args.command not in ("train", "pretrain") and int(os.environ.get("WORLD_SIZE", "1")) > 1:
+            raise CLIError(f"iarcs {args.command} runs in one process; only `iarcs train` and `iarcs pretrain` run "
                            "data-parallel under torchrun (agents/distributed.py)")
         result = args.func(args)
     except user_errors() as err:

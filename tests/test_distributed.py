@@ -88,6 +88,37 @@ def test_other_commands_refuse_to_run_under_torchrun(monkeypatch, tmp_path, caps
 
     monkeypatch.setenv("WORLD_SIZE", "2")  # what torchrun sets in each process it starts
     assert main(["sample", "--num-scenes", "2", "--out", str(tmp_path / "s.json")]) == 2
-    assert "iarcs sample runs in one process; of the commands only `iarcs train` runs data-parallel" in \
+    assert "iarcs sample runs in one process; only `iarcs train` and `iarcs pretrain` run data-parallel" in \
         capsys.readouterr().err
     assert not (tmp_path / "s.json").exists()
+
+
+def test_torchrun_pretrain_writes_one_run_and_resumes(tmp_path):
+    from agents.denoiser import ScenePrior
+    from iarcs_env.datasets import save_layouts
+    from test_pretrain import toy_bedrooms
+
+    data = save_layouts(toy_bedrooms(40), tmp_path / "rooms.json")
+    config = tmp_path / "pretrain.yaml"
+    config.write_text(f"room: bedroom\ndataset: {data}\npreset: tiny\nbatch_size: 8\nsteps: 6\nlr: 3.0e-3\n"
+                      "warmup_steps: 2\ncheckpoint_every: 3\nlog_every: 1\neval_every: 3\nval_scenes: 4\n"
+                      f"tensorboard: true\nout: {tmp_path / 'run'}\n")
+    done = torchrun("-m", "experiments.cli", "pretrain", "--config", str(config), "--device", "cpu")
+    assert "2 processes of 4 scenes per step" in done.stdout and done.stdout.count("step 6/6") == 1
+    run = tmp_path / "run"
+    logged = [json.loads(line) for line in (run / "metrics.jsonl").read_text().splitlines()]
+    assert [r["step"] for r in logged] == [1, 2, 3, 4, 5, 6]  # written by rank 0 alone
+    assert all(r["loss"] > 0 for r in logged) and "val_loss_ema" in logged[-1]
+    assert ScenePrior.load(run / "prior.pt").meta["step"] == 6
+
+    done = torchrun("-m", "experiments.cli", "pretrain", "--config", str(config), "--steps", "8")
+    assert "resumed" in done.stdout and "step 8/8" in done.stdout
+    assert [json.loads(line)["step"] for line in (run / "metrics.jsonl").read_text().splitlines()][-2:] == [7, 8]
+
+    config.write_text(config.read_text().replace("batch_size: 8", "batch_size: 7"))
+    failed = subprocess.run([sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc_per_node=2",
+                             "-m", "experiments.cli", "pretrain", "--config", str(config), "--out", str(tmp_path / "b")],
+                            cwd=REPO, capture_output=True, text=True, timeout=600,
+                            env={**os.environ, "OMP_NUM_THREADS": "1"})
+    assert failed.returncode != 0
+    assert "batch_size 7 does not split evenly over 2 processes; make it a multiple of 2" in failed.stderr

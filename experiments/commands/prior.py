@@ -39,6 +39,7 @@ def register(sub) -> None:
 
 def cmd_pretrain(args) -> int:
     from experiments.cli import CLIError
+    from agents import distributed
     from agents.pretrain import PRIOR_FILE, STATE_FILE, load_config, train
 
     if args.steps is not None and args.steps <= 0:
@@ -48,7 +49,13 @@ def cmd_pretrain(args) -> int:
     if args.no_resume and (out / STATE_FILE).exists():
         raise CLIError(f"{out} already holds a run ({STATE_FILE}); drop --no-resume to continue it, or choose "
                        "another --out")
-    result = train(cfg, resume=not args.no_resume)
+    try:
+        result = train(cfg, resume=not args.no_resume)
+        main = distributed.is_main()
+    finally:
+        distributed.cleanup()
+    if not main:  # under torchrun, rank 0 reports
+        return 0
     last = result.losses[-1][1] if result.losses else float("nan")
     print(f"step {result.step}/{cfg.steps} in {result.seconds:.0f} s; last training loss {last:.4f}"
           + (f"; EMA validation loss {result.val_losses[-1][1]:.4f}" if result.val_losses else ""))
