@@ -106,6 +106,9 @@ class PretrainConfig:
     """Where the network trains: ``auto`` (the first CUDA GPU torch sees, else the CPU), ``cpu``, ``cuda`` or
     ``cuda:N``. Data and augmentation stay on the CPU; the seeded noise is drawn on the CPU too, so a run's
     randomness does not depend on the device."""
+    precision: str = "fp32"
+    """``fp32``, or ``bf16``: the denoiser's forward pass under ``torch.autocast`` in bfloat16 (weights, optimiser,
+    EMA and the loss stay float32). Faster on recent GPUs (the ``paper`` preset); no faster on a CPU."""
     tensorboard: bool = True
     """Write TensorBoard scalars to ``out/tb``."""
     init_from: str = ""
@@ -116,6 +119,8 @@ class PretrainConfig:
     def __post_init__(self):
         get_room(self.room)
         check_device(self.device)
+        if self.precision not in ("fp32", "bf16"):
+            raise ValueError(f"precision must be fp32 or bf16, got {self.precision!r}")
         DenoiserConfig.from_preset(self.preset, **dict(self.model))
         for name in ("num_scenes", "steps", "batch_size", "checkpoint_every", "log_every", "eval_every"):
             if getattr(self, name) <= 0:
@@ -442,7 +447,9 @@ def train(cfg: PretrainConfig, layouts: Sequence[Layout] | None = None, max_step
             for group in opt.param_groups:
                 group["lr"] = lr
             low_t = torch.randint(0, cfg.max_timestep, (x0.shape[0],), generator=gen).to(device) if cfg.max_timestep else None
-            loss = schedule.training_loss(lambda x, t: net(x, t, floor), x0, gen, t=low_t, feature_weights=weights)
+            with torch.autocast(device.type, dtype=torch.bfloat16, enabled=cfg.precision == "bf16"):
+                loss = schedule.training_loss(lambda x, t: net(x, t, floor).float(), x0, gen, t=low_t,
+                                              feature_weights=weights)
             opt.zero_grad(set_to_none=True)
             loss.backward()
             distributed.average_gradients(net.parameters())

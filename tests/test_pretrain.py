@@ -58,7 +58,7 @@ def test_config_yaml_round_trip_and_clear_errors(tmp_path):
     cfg = load_config("experiments/pretrain_bedroom.yaml")
     assert cfg.room == "bedroom" and cfg.dataset == "procedural" and cfg.preset == "small"
     assert load_config("experiments/pretrain_bedroom.yaml", steps=7, out="x").steps == 7
-    for name in ("livingroom", "diningroom", "bedroom_real"):
+    for name in ("livingroom", "diningroom", "bedroom_real", "bedroom_paper"):
         load_config(f"experiments/pretrain_{name}.yaml")
     with pytest.raises(ValueError, match=r"unknown key 'stpes' \(did you mean 'steps'\?\)"):
         config_from_dict({"stpes": 3})
@@ -66,6 +66,8 @@ def test_config_yaml_round_trip_and_clear_errors(tmp_path):
         config_from_dict({"batch_size": "big"})
     with pytest.raises(ValueError, match="unknown room type"):
         config_from_dict({"room": "kitchen"})
+    with pytest.raises(ValueError, match="precision must be fp32 or bf16, got 'fp16'"):
+        config_from_dict({"precision": "fp16"})
     with pytest.raises(ValueError, match="unknown denoiser field"):
         config_from_dict({"model": {"layers": 3}})
     assert config_from_dict({"lr": 1}).lr == 1.0  # ints are fine where floats are expected
@@ -130,13 +132,18 @@ def test_lr_schedule_warms_up_and_decays():
     assert lr_at(99, cfg) == pytest.approx(1e-4, rel=0.01)
 
 
-def test_pretraining_lowers_the_loss(tmp_path):
-    cfg = tiny_config(tmp_path, steps=60)
+@pytest.mark.parametrize("precision", ["fp32", "bf16"])
+def test_pretraining_lowers_the_loss(tmp_path, precision):
+    cfg = tiny_config(tmp_path, steps=60, precision=precision)
     result = train(cfg, toy_bedrooms(80), progress=False, log=lambda m: None)
     losses = [v for _, v in result.losses]
     assert result.step == 60 and len(losses) == 60
     assert np.mean(losses[-10:]) < 0.8 * np.mean(losses[:5])
     assert result.val_losses[-1][1] < result.val_losses[0][1]
+    if precision == "bf16":  # the forward pass ran in bfloat16: not the float32 run's numbers, but as good
+        fp32 = train(tiny_config(tmp_path / "fp32", steps=60), toy_bedrooms(80), progress=False, log=lambda m: None)
+        assert losses != [v for _, v in fp32.losses]
+        assert result.val_losses[-1][1] < 1.25 * fp32.val_losses[-1][1]
     out = tmp_path / "run"
     for name in (STATE_FILE, PRIOR_FILE, "config.yaml", "dataset_stats.json", "metrics.jsonl"):
         assert (out / name).exists(), name
@@ -147,6 +154,16 @@ def test_pretraining_lowers_the_loss(tmp_path):
     scenes = prior.sample([l.floor for l in toy_bedrooms(2, seed=9)], num_steps=5,
                           generator=torch.Generator().manual_seed(0))
     assert scenes.labels.shape == (2, 12)
+
+
+def test_the_paper_size_config_trains_a_step_on_the_cpu(tmp_path):
+    cfg = load_config("experiments/pretrain_bedroom_paper.yaml", num_scenes=24, steps=1, batch_size=2,
+                      val_scenes=2, device="cpu", out=str(tmp_path / "paper"))
+    assert cfg.preset == "paper" and cfg.precision == "bf16"
+    result = train(cfg, progress=False, log=lambda m: None)
+    assert result.step == 1 and np.isfinite(result.losses[0][1])
+    prior = ScenePrior.load(tmp_path / "paper" / PRIOR_FILE)
+    assert prior.denoiser.config.num_layers == 8 and prior.denoiser.num_parameters() > 50e6
 
 
 def test_interrupted_run_resumes_where_it_stopped(tmp_path):
