@@ -75,7 +75,8 @@ def resolve_device(name: str = "auto"):
     if device.type == "cuda":
         if not torch.cuda.is_available():
             raise ValueError(f"device {name!r} asked for, but torch {torch.__version__} sees no CUDA GPU (a CPU-only "
-                             "build of torch, or no GPU driver); use device auto or cpu, or install a CUDA build of torch")
+                             "build of torch, or no GPU driver); use device auto or cpu, or install a CUDA build "
+                             "of torch")
         if device.index is not None and device.index >= torch.cuda.device_count():
             raise ValueError(f"device {name!r} asked for, but torch sees {torch.cuda.device_count()} CUDA GPU(s) "
                              f"(cuda:0 to cuda:{torch.cuda.device_count() - 1})")

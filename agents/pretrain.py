@@ -446,7 +446,9 @@ def train(cfg: PretrainConfig, layouts: Sequence[Layout] | None = None, max_step
             lr = lr_at(step, cfg)
             for group in opt.param_groups:
                 group["lr"] = lr
-            low_t = torch.randint(0, cfg.max_timestep, (x0.shape[0],), generator=gen).to(device) if cfg.max_timestep else None
+            low_t = None
+            if cfg.max_timestep:
+                low_t = torch.randint(0, cfg.max_timestep, (x0.shape[0],), generator=gen).to(device)
             with torch.autocast(device.type, dtype=torch.bfloat16, enabled=cfg.precision == "bf16"):
                 loss = schedule.training_loss(lambda x, t: net(x, t, floor).float(), x0, gen, t=low_t,
                                               feature_weights=weights)

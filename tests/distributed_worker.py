@@ -24,8 +24,9 @@ def fixed_batch(model) -> TensorDict:
     floor = torch.from_numpy(model.venv._floor_features[:1]).repeat(ROWS, 1, 1)
     t = torch.full((ROWS, 1), 800)
     action, log_prob = model.policy.act(x, t, floor, generator=torch.Generator().manual_seed(6))
-    return TensorDict({"x_t": x, "t": t, "floor": floor, "action": action + 0.01 * torch.randn(action.shape, generator=g),
-                       "sample_log_prob": log_prob, "advantage": torch.randn(ROWS, 1, generator=g)}, batch_size=[ROWS])
+    action = action + 0.01 * torch.randn(action.shape, generator=g)  # off the mean: ratios not 1
+    return TensorDict({"x_t": x, "t": t, "floor": floor, "action": action, "sample_log_prob": log_prob,
+                       "advantage": torch.randn(ROWS, 1, generator=g)}, batch_size=[ROWS])
 
 
 def gradients(model, batch) -> list[torch.Tensor]:

@@ -56,8 +56,8 @@ def test_ranks_average_gradients_share_advantages_and_keep_one_adapter(tmp_path)
 def test_torchrun_train_writes_one_run_folder_and_resumes(tmp_path):
     config = write_tiny_train_config(tmp_path)
     done = torchrun("-m", "experiments.cli", "train", "--config", str(config), "--device", "cpu")
-    assert "2 processes (cpu on rank 0), 8 scenes each per rollout batch" in done.stdout
-    assert done.stdout.count("DDPO-IS: 2 epochs") == 1  # rank 0 reports, once
+    assert "2 processes (cpu on rank 0), 8 scenes each per rollout batch" in done.stdout, done.stdout + done.stderr
+    assert done.stdout.count("DDPO-IS: 2 epochs") == 1, done.stdout  # rank 0 reports, once
     run = tmp_path / "run"
     assert (run / "adapters" / "stage1" / "adapter_config.json").exists()
     assert json.loads((run / "checkpoint" / "trainer.json").read_text())["epoch"] == 2
@@ -66,7 +66,7 @@ def test_torchrun_train_writes_one_run_folder_and_resumes(tmp_path):
     assert len([p for p in (run / "tb").iterdir() if p.name.startswith("events.out.tfevents")]) == 1
 
     done = torchrun("-m", "experiments.cli", "train", "--config", str(config), "--epochs", "3")
-    assert "resuming" in done.stdout
+    assert "resuming" in done.stdout, done.stdout + done.stderr
     assert json.loads((run / "checkpoint" / "trainer.json").read_text())["epoch"] == 3
     assert [json.loads(line)["epoch"] for line in (run / "eval.jsonl").read_text().splitlines()] == [1, 2, 3]
 
@@ -104,7 +104,8 @@ def test_torchrun_pretrain_writes_one_run_and_resumes(tmp_path):
                       "warmup_steps: 2\ncheckpoint_every: 3\nlog_every: 1\neval_every: 3\nval_scenes: 4\n"
                       f"tensorboard: true\nout: {tmp_path / 'run'}\n")
     done = torchrun("-m", "experiments.cli", "pretrain", "--config", str(config), "--device", "cpu")
-    assert "2 processes of 4 scenes per step" in done.stdout and done.stdout.count("step 6/6") == 1
+    said = done.stdout + done.stderr
+    assert "2 processes of 4 scenes per step" in done.stdout and done.stdout.count("step 6/6") == 1, said
     run = tmp_path / "run"
     logged = [json.loads(line) for line in (run / "metrics.jsonl").read_text().splitlines()]
     assert [r["step"] for r in logged] == [1, 2, 3, 4, 5, 6]  # written by rank 0 alone
@@ -112,13 +113,15 @@ def test_torchrun_pretrain_writes_one_run_and_resumes(tmp_path):
     assert ScenePrior.load(run / "prior.pt").meta["step"] == 6
 
     done = torchrun("-m", "experiments.cli", "pretrain", "--config", str(config), "--steps", "8")
-    assert "resumed" in done.stdout and "step 8/8" in done.stdout
+    assert "resumed" in done.stdout and "step 8/8" in done.stdout, done.stdout + done.stderr
     assert [json.loads(line)["step"] for line in (run / "metrics.jsonl").read_text().splitlines()][-2:] == [7, 8]
 
     config.write_text(config.read_text().replace("batch_size: 8", "batch_size: 7"))
     failed = subprocess.run([sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc_per_node=2",
-                             "-m", "experiments.cli", "pretrain", "--config", str(config), "--out", str(tmp_path / "b")],
+                             "-m", "experiments.cli", "pretrain", "--config", str(config),
+                             "--out", str(tmp_path / "b")],
                             cwd=REPO, capture_output=True, text=True, timeout=600,
                             env={**os.environ, "OMP_NUM_THREADS": "1"})
     assert failed.returncode != 0
-    assert "batch_size 7 does not split evenly over 2 processes; make it a multiple of 2" in failed.stderr
+    assert "batch_size 7 does not split evenly over 2 processes; make it a multiple of 2" in failed.stderr, \
+        failed.stderr[-3000:]
