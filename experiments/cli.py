@@ -19,6 +19,7 @@ COMMAND_MODULES = [
     "experiments.commands.prior",
     "experiments.commands.reward",
     "experiments.commands.generate",
+    "experiments.commands.info",
 ]
 
 

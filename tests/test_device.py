@@ -93,3 +93,24 @@ def test_ddpo_trains_on_a_gpu_and_resumes_on_the_cpu(tmp_path):
         torch.testing.assert_close(v, after[k].cpu())
     resumed.learn(8 * STEPS * 3)
     assert resumed.epoch == 3
+
+
+def test_info_reports_the_device_models_library_and_agent(tmp_path, monkeypatch, capsys):
+    monkeypatch.setenv("IARCS_HOME", str(tmp_path))
+    (tmp_path / "adapters" / "bedroom" / "a_wheelchair_accessible_bedroom-1234abcd" / "adapter").mkdir(parents=True)
+    for key in ("GEMINI_API_KEY", "OPENAI_API_KEY", "ANTHROPIC_API_KEY", "OPENAI_API_BASE"):
+        monkeypatch.delenv(key, raising=False)
+    assert main(["info"]) == 0
+    text = capsys.readouterr().out
+    assert f"`device: auto` trains on {resolve_device('auto')}" in text
+    assert f"torch {torch.__version__}" in text and "gloo" in text
+    assert "bedroom: prior " in text and "bedroom_small.pt; stage-1 adapter " in text
+    assert "livingroom: prior " in text and "stage-1 adapter not shipped" in text
+    assert "bedroom/a_wheelchair_accessible_bedroom-1234abcd" in text
+    assert "the offline planner writes the reward programs" in text
+
+    monkeypatch.setenv("GEMINI_API_KEY", "k")
+    assert main(["info", "--json"]) == 0
+    facts = json.loads(capsys.readouterr().out)
+    assert facts["llm_keys_set"] == ["GEMINI_API_KEY"] and facts["device"]["auto"] == str(resolve_device("auto"))
+    assert facts["packages"]["torch"] == torch.__version__ and len(facts["device"]["gpus"]) == torch.cuda.device_count()

@@ -43,13 +43,17 @@ def register(sub) -> None:
     p.set_defaults(func=cmd_generate)
 
 
+def library_root() -> Path:
+    """The adapter library: ``$IARCS_HOME/adapters`` (``IARCS_HOME`` defaults to ``~/.iarcs``)."""
+    return Path(os.environ.get("IARCS_HOME", Path.home() / ".iarcs")).expanduser() / "adapters"
+
+
 def library_dir(room: str, constraint: str) -> Path:
     """Where the adapter for (room, constraint) lives: a readable slug plus a hash of the normalised text."""
     norm = " ".join(constraint.lower().split())
     slug = re.sub(r"[^a-z0-9]+", "_", norm).strip("_")[:40]
     digest = hashlib.sha1(f"{room}|{norm}".encode()).hexdigest()[:8]
-    home = Path(os.environ.get("IARCS_HOME", Path.home() / ".iarcs")).expanduser()
-    return home / "adapters" / room / f"{slug}-{digest}"
+    return library_root() / room / f"{slug}-{digest}"
 
 
 def matching_task(constraint: str) -> str | None:
