@@ -13,10 +13,23 @@ from rewards.memory import EvolutionMemory
 from conftest import REPO, write_tiny_train_config
 
 
-def torchrun(*args: str, processes: int = 2) -> subprocess.CompletedProcess:
+#: torchrun's own start-up can lose a race for a free port on a busy machine; that (and only that) is retried once.
+PORT_RACE = ("DistNetworkError", "Address already in use", "RendezvousConnectionError")
+
+
+def launch(*args: str, processes: int = 2) -> subprocess.CompletedProcess:
+    """``torchrun --standalone --nproc_per_node=processes ARGS`` from the repository root."""
     env = {**os.environ, "OMP_NUM_THREADS": "1", "PYTHONPATH": str(REPO / "tests")}
     cmd = [sys.executable, "-m", "torch.distributed.run", "--standalone", f"--nproc_per_node={processes}", *args]
-    done = subprocess.run(cmd, cwd=REPO, env=env, capture_output=True, text=True, timeout=600)
+    for _ in range(2):
+        done = subprocess.run(cmd, cwd=REPO, env=env, capture_output=True, text=True, timeout=600)
+        if done.returncode == 0 or not any(s in done.stderr for s in PORT_RACE):
+            break
+    return done
+
+
+def torchrun(*args: str, processes: int = 2) -> subprocess.CompletedProcess:
+    done = launch(*args, processes=processes)
     assert done.returncode == 0, f"torchrun failed ({done.returncode}):\n{done.stdout[-3000:]}\n{done.stderr[-3000:]}"
     return done
 
@@ -117,11 +130,7 @@ def test_torchrun_pretrain_writes_one_run_and_resumes(tmp_path):
     assert [json.loads(line)["step"] for line in (run / "metrics.jsonl").read_text().splitlines()][-2:] == [7, 8]
 
     config.write_text(config.read_text().replace("batch_size: 8", "batch_size: 7"))
-    failed = subprocess.run([sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc_per_node=2",
-                             "-m", "experiments.cli", "pretrain", "--config", str(config),
-                             "--out", str(tmp_path / "b")],
-                            cwd=REPO, capture_output=True, text=True, timeout=600,
-                            env={**os.environ, "OMP_NUM_THREADS": "1"})
+    failed = launch("-m", "experiments.cli", "pretrain", "--config", str(config), "--out", str(tmp_path / "b"))
     assert failed.returncode != 0
     assert "batch_size 7 does not split evenly over 2 processes; make it a multiple of 2" in failed.stderr, \
         failed.stderr[-3000:]
