@@ -20,6 +20,7 @@ import gymnasium as gym
 import torch
 
 import iarcs_env  # noqa: F401
+from agents.config import resolve_device
 from agents.ddpo import DDPO
 from agents.denoiser import ScenePrior
 from agents.policy import DiffusionPolicy
@@ -27,8 +28,9 @@ from iarcs_env.env import default_floors, default_stats
 from rewards.composite import CompositeReward
 
 
-def make_algo(preset: str, scenes: int, minibatch: int, steps: int = 20) -> DDPO:
-    """DDPO-IS on a random-weight bedroom prior of ``preset`` with ``scenes`` environments and the universal reward."""
+def make_algo(preset: str, scenes: int, minibatch: int, steps: int = 20, device: str = "cpu") -> DDPO:
+    """DDPO-IS on a random-weight bedroom prior of ``preset`` with ``scenes`` environments and the universal reward,
+    the policy on ``device``."""
     torch.manual_seed(0)
     stats = default_stats("bedroom")
     prior = ScenePrior.create("bedroom", stats, preset)
@@ -36,15 +38,15 @@ def make_algo(preset: str, scenes: int, minibatch: int, steps: int = 20) -> DDPO
         for p in prior.denoiser.parameters():
             if p.dim() == 2 and float(p.abs().sum()) == 0:
                 p.normal_(std=0.02)
-    policy = DiffusionPolicy(prior, num_steps=steps)
+    policy = DiffusionPolicy(prior, num_steps=steps).to(resolve_device(device))
     reward = CompositeReward.universal(stats)
     env = gym.make_vec("iARCS-Bedroom-v0", num_envs=scenes, vectorization_mode="vector_entry_point",
                        floors=default_floors("bedroom", 64), stats=stats, reward=reward, num_steps=steps)
     return DDPO(policy, env, verbose=0, minibatch_size=minibatch, samples_per_floor=4)
 
 
-def measure(preset: str, scenes: int, minibatch: int, steps: int = 20) -> dict:
-    algo = make_algo(preset, scenes, minibatch, steps)
+def measure(preset: str, scenes: int, minibatch: int, steps: int = 20, device: str = "cpu") -> dict:
+    algo = make_algo(preset, scenes, minibatch, steps, device)
     policy, reward, prior, stats = algo.policy, algo.venv.reward_fn, algo.policy.prior, algo.policy.prior.stats
     t0 = time.perf_counter()
     rollout = algo.collect_rollouts()  # includes the reward, timed again below
@@ -58,11 +60,11 @@ def measure(preset: str, scenes: int, minibatch: int, steps: int = 20) -> dict:
     t_update = time.perf_counter() - t2
     t_rollout = (t1 - t0) - t_reward
 
-    x = torch.randn(scenes, 12, stats.spec.feature_dim)
-    f = torch.from_numpy(algo.venv._floor_features[:1]).repeat(scenes, 1, 1)
+    x = torch.randn(scenes, 12, stats.spec.feature_dim, device=algo.device)
+    f = torch.from_numpy(algo.venv._floor_features[:1]).repeat(scenes, 1, 1).to(algo.device)
     with torch.no_grad():
         t3 = time.perf_counter()
-        policy(x, torch.full((scenes,), 500), f)
+        policy(x, torch.full((scenes,), 500, device=algo.device), f)[0].sum().item()  # .item(): waits for a GPU
         t_forward = time.perf_counter() - t3
     total = t_rollout + t_reward + t_update
     return {"preset": preset, "scenes": scenes, "minibatch": minibatch, "epoch_s": total,
@@ -77,9 +79,14 @@ def main() -> None:
     ap.add_argument("--scenes", type=int, default=256, help="scenes per epoch (DDPO's sample batch; default 256)")
     ap.add_argument("--minibatch", type=int, default=32, help="scenes per optimiser step (default 32)")
     ap.add_argument("--presets", nargs="+", default=["small", "paper"])
+    ap.add_argument("--device", default="cpu", help="where the policy runs: cpu (default), cuda or cuda:N")
     ap.add_argument("--json", default="out/benchmarks/bench_ddpo_epoch.json")
     args = ap.parse_args()
-    rows = [measure(p, args.scenes, args.minibatch) for p in args.presets]
+    try:
+        resolve_device(args.device)
+    except ValueError as err:
+        ap.error(str(err))
+    rows = [measure(p, args.scenes, args.minibatch, device=args.device) for p in args.presets]
     print(f"{'preset':<7} {'scenes':>6} {'epoch s':>8} {'rollout':>8} {'reward':>7} {'update':>7} "
           f"{'epoch / forward pass':>21}")
     for r in rows:

@@ -2,7 +2,7 @@
 256, for the ``small`` and ``paper`` presets, next to the float32 matmul rate measured in the same run
 times the model's FLOPs per scene (the compute-bound limit), as a fraction of that limit.
 
-Run it as a script (``python benchmarks/bench_sampling.py [--json out.json] [--quick]``); never
+Run it as a script (``python benchmarks/bench_sampling.py [--json out.json] [--quick] [--device cuda]``); never
 ``import benchmarks`` (torchrl installs a site-packages package of that name). Weights are random: the
 speed of a network does not depend on its values.
 """
@@ -26,15 +26,24 @@ from iarcs_env import FloorPlan, get_room  # noqa: E402
 from iarcs_env.stats import DatasetStats  # noqa: E402
 
 
-def matmul_flops(n: int = 1024, seconds: float = 2.0) -> float:
-    """Measured float32 matmul rate (FLOP/s) on square n x n matrices."""
-    a, b = torch.randn(n, n), torch.randn(n, n)
+def synchronize(device: torch.device) -> None:
+    """Wait for the GPU's queued work (timings of asynchronous CUDA calls would stop too early)."""
+    if device.type == "cuda":
+        torch.cuda.synchronize(device)
+
+
+def matmul_flops(device: torch.device, n: int = 1024, seconds: float = 2.0) -> float:
+    """Measured float32 matmul rate (FLOP/s) on square n x n matrices on ``device`` (4096 on a GPU)."""
+    n = 4096 if device.type == "cuda" else n
+    a, b = torch.randn(n, n, device=device), torch.randn(n, n, device=device)
     for _ in range(3):
         a @ b
+    synchronize(device)
     reps, t0 = 0, time.perf_counter()
     while time.perf_counter() - t0 < seconds:
         a @ b
         reps += 1
+    synchronize(device)
     return 2 * n**3 * reps / (time.perf_counter() - t0)
 
 
@@ -44,7 +53,7 @@ def floors(batch: int) -> list[FloorPlan]:
     return [FloorPlan.from_vertices(shapes[i % 3]) for i in range(batch)]
 
 
-def bench(preset: str, batch: int, steps: int, repeats: int, room: str = "bedroom") -> dict:
+def bench(preset: str, batch: int, steps: int, repeats: int, device: torch.device, room: str = "bedroom") -> dict:
     spec = get_room(room)
     stats = DatasetStats(spec.name, [-3, 0, -3, 3, 2.6, 3], [0.05, 0.05, 0.05, 1.5, 1.3, 1.5])
     torch.manual_seed(0)
@@ -53,6 +62,7 @@ def bench(preset: str, batch: int, steps: int, repeats: int, room: str = "bedroo
     with torch.no_grad():
         for p in prior.denoiser.parameters():
             p.normal_(0, 0.02)
+    prior.to(device)
     fl = floors(batch)
     prior.sample(fl[: min(batch, 8)], num_steps=2)  # warm-up
     times = []
@@ -60,6 +70,7 @@ def bench(preset: str, batch: int, steps: int, repeats: int, room: str = "bedroo
         g = torch.Generator().manual_seed(r)
         t0 = time.perf_counter()
         prior.sample(fl, num_steps=steps, eta=1.0, generator=g)
+        synchronize(device)
         times.append(time.perf_counter() - t0)
     best = min(times)
     net = prior.denoiser
@@ -75,19 +86,28 @@ def main(argv=None) -> int:
     ap.add_argument("--json", default=None, help="also write the results to this JSON file")
     ap.add_argument("--quick", action="store_true", help="small preset at batch 32 only")
     ap.add_argument("--steps", type=int, default=20)
+    ap.add_argument("--device", default="cpu", help="cpu (default), cuda or cuda:N: where the model and the "
+                                                    "matmul reference run")
     args = ap.parse_args(argv)
 
-    rate = matmul_flops()
+    from agents.config import resolve_device
+
+    try:
+        device = resolve_device(args.device)
+    except ValueError as err:
+        ap.error(str(err))
+    rate = matmul_flops(device)
     rows = []
     plan = [("small", 32)] if args.quick else [("small", 32), ("small", 256), ("paper", 32), ("paper", 256)]
     for preset, batch in plan:
         repeats = 3 if preset == "small" else (2 if batch <= 32 else 1)
-        row = bench(preset, batch, args.steps, repeats)
+        row = bench(preset, batch, args.steps, repeats, device)
         row["limit_scenes_per_s"] = rate / row["flops_per_scene"]
         row["fraction_of_limit"] = row["scenes_per_s"] / row["limit_scenes_per_s"]
         rows.append(row)
-    print(f"torch {torch.__version__}, {torch.get_num_threads()} threads, {platform.processor() or platform.machine()}, "
-          f"{os.cpu_count()} CPUs; float32 matmul {rate / 1e9:.1f} GFLOP/s")
+    where = (torch.cuda.get_device_name(device) if device.type == "cuda" else
+             f"{torch.get_num_threads()} threads, {platform.processor() or platform.machine()}, {os.cpu_count()} CPUs")
+    print(f"torch {torch.__version__}, {where}; float32 matmul {rate / 1e9:.1f} GFLOP/s")
     print(f"{'preset':<7}{'batch':>6}{'params':>11}{'MFLOP/scene':>13}{'rollout s':>11}{'scenes/s':>10}"
           f"{'limit/s':>10}{'of limit':>10}")
     for r in rows:
@@ -96,7 +116,7 @@ def main(argv=None) -> int:
               f"{r['fraction_of_limit']:>10.1%}")
     if args.json:
         Path(args.json).parent.mkdir(parents=True, exist_ok=True)
-        Path(args.json).write_text(json.dumps({"matmul_flops": rate, "torch": torch.__version__,
+        Path(args.json).write_text(json.dumps({"matmul_flops": rate, "torch": torch.__version__, "device": str(device),
                                                "threads": torch.get_num_threads(), "results": rows}, indent=1))
     return 0
 
