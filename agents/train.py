@@ -176,8 +176,9 @@ def run(cfg: TrainConfig, progress: bool = True, log=print):
     main = distributed.is_main()
     if not main:
         progress, log = False, lambda *args, **kwargs: None
-    elif distributed.world_size() > 1:
-        log(f"{distributed.world_size()} processes ({device} on rank 0), {cfg.num_envs} scenes each per rollout batch")
+    processes = distributed.world_size()
+    log(f"training on {device}" + (f", {processes} processes of {cfg.num_envs} scenes per rollout batch"
+                                   if processes > 1 else ""))
     out = Path(cfg.out)
     out.mkdir(parents=True, exist_ok=True)
     ckpt = out / CHECKPOINT_DIR

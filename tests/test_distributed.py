@@ -69,7 +69,7 @@ def test_ranks_average_gradients_share_advantages_and_keep_one_adapter(tmp_path)
 def test_torchrun_train_writes_one_run_folder_and_resumes(tmp_path):
     config = write_tiny_train_config(tmp_path)
     done = torchrun("-m", "experiments.cli", "train", "--config", str(config), "--device", "cpu")
-    assert "2 processes (cpu on rank 0), 8 scenes each per rollout batch" in done.stdout, done.stdout + done.stderr
+    assert "training on cpu, 2 processes of 8 scenes per rollout batch" in done.stdout, done.stdout + done.stderr
     assert done.stdout.count("DDPO-IS: 2 epochs") == 1, done.stdout  # rank 0 reports, once
     run = tmp_path / "run"
     assert (run / "adapters" / "stage1" / "adapter_config.json").exists()
