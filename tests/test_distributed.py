@@ -1,11 +1,13 @@
-"""Data-parallel training under real ``torchrun`` processes (2 CPU processes talking through gloo): averaged
-gradients, advantages over every rank's scenes, one adapter on every rank, one run folder, resuming."""
+"""Data-parallel training under real ``torchrun`` processes (2 CPU processes talking through gloo, whatever GPUs
+the machine has; 2 GPUs through NCCL where there are two): averaged gradients, advantages over every rank's
+scenes, one adapter on every rank, one run folder, resuming."""
 
 import json
 import os
 import subprocess
 import sys
 
+import pytest
 import torch
 
 from iarcs_env.tasks import get_task
@@ -78,7 +80,7 @@ def test_torchrun_train_writes_one_run_folder_and_resumes(tmp_path):
     assert [e["epoch"] for e in evals] == [1, 2]  # evaluated by rank 0 alone
     assert len([p for p in (run / "tb").iterdir() if p.name.startswith("events.out.tfevents")]) == 1
 
-    done = torchrun("-m", "experiments.cli", "train", "--config", str(config), "--epochs", "3")
+    done = torchrun("-m", "experiments.cli", "train", "--config", str(config), "--epochs", "3", "--device", "cpu")
     assert "resuming" in done.stdout, done.stdout + done.stderr
     assert json.loads((run / "checkpoint" / "trainer.json").read_text())["epoch"] == 3
     assert [json.loads(line)["epoch"] for line in (run / "eval.jsonl").read_text().splitlines()] == [1, 2, 3]
@@ -87,7 +89,7 @@ def test_torchrun_train_writes_one_run_folder_and_resumes(tmp_path):
 def test_torchrun_stage2_reflects_on_rank_0_only(tmp_path):
     config = write_tiny_train_config(tmp_path, adapter="two_nightstands", epochs=4, eval_every=2,
                                      task={"checker": "two_nightstands", "reflect_every": 2})
-    torchrun("-m", "experiments.cli", "train", "--config", str(config))
+    torchrun("-m", "experiments.cli", "train", "--config", str(config), "--device", "cpu")
     run = tmp_path / "run"
     memory = json.loads((run / "reward_memory.json").read_text())
     assert [(e["kind"], e["epoch"]) for e in memory["entries"]] == [("synthesize", 0), ("reflect", 2), ("reflect", 4)]
@@ -125,12 +127,22 @@ def test_torchrun_pretrain_writes_one_run_and_resumes(tmp_path):
     assert all(r["loss"] > 0 for r in logged) and "val_loss_ema" in logged[-1]
     assert ScenePrior.load(run / "prior.pt").meta["step"] == 6
 
-    done = torchrun("-m", "experiments.cli", "pretrain", "--config", str(config), "--steps", "8")
+    done = torchrun("-m", "experiments.cli", "pretrain", "--config", str(config), "--steps", "8", "--device", "cpu")
     assert "resumed" in done.stdout and "step 8/8" in done.stdout, done.stdout + done.stderr
     assert [json.loads(line)["step"] for line in (run / "metrics.jsonl").read_text().splitlines()][-2:] == [7, 8]
 
     config.write_text(config.read_text().replace("batch_size: 8", "batch_size: 7"))
-    failed = launch("-m", "experiments.cli", "pretrain", "--config", str(config), "--out", str(tmp_path / "b"))
+    failed = launch("-m", "experiments.cli", "pretrain", "--config", str(config), "--out", str(tmp_path / "b"),
+                    "--device", "cpu")
     assert failed.returncode != 0
     assert "batch_size 7 does not split evenly over 2 processes; make it a multiple of 2" in failed.stderr, \
         failed.stderr[-3000:]
+
+
+@pytest.mark.skipif(torch.cuda.device_count() < 2, reason=f"NCCL needs 2 CUDA GPUs; torch {torch.__version__} sees "
+                                                           f"{torch.cuda.device_count()}")
+def test_torchrun_train_on_two_gpus_over_nccl(tmp_path):
+    config = write_tiny_train_config(tmp_path)
+    done = torchrun("-m", "experiments.cli", "train", "--config", str(config), "--device", "cuda")
+    assert "training on cuda:0, 2 processes of 8 scenes per rollout batch" in done.stdout, done.stdout + done.stderr
+    assert json.loads((tmp_path / "run" / "checkpoint" / "trainer.json").read_text())["epoch"] == 2
