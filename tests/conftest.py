@@ -80,7 +80,7 @@ def write_tiny_train_config(tmp_path: Path, **settings) -> Path:
     ScenePrior.create("bedroom", default_stats("bedroom"), "tiny").save(tmp_path / "prior.pt")
     cfg = {"prior": str(tmp_path / "prior.pt"), "num_envs": 8, "num_steps": 4, "num_floors": 8, "eval_floors": 4,
            "epochs": 2, "eval_every": 1, "ddpo": {"samples_per_floor": 4, "minibatch_size": 8},
-           "out": str(tmp_path / "run"), **settings}
+           "out": str(tmp_path / "run"), "device": "cpu", **settings}
     path = tmp_path / "train.yaml"
     path.write_text(yaml.safe_dump(cfg))
     return path

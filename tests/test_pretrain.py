@@ -49,7 +49,8 @@ def one_thread():
 
 def tiny_config(tmp_path, **kw) -> PretrainConfig:
     base = dict(preset="tiny", steps=30, batch_size=16, lr=3e-3, warmup_steps=2, checkpoint_every=10,
-                log_every=5, eval_every=10, val_scenes=8, out=str(tmp_path / "run"), tensorboard=False)
+                log_every=5, eval_every=10, val_scenes=8, out=str(tmp_path / "run"), tensorboard=False,
+                device="cpu")  # exact comparisons; the GPU path is tests/test_device.py's
     base.update(kw)
     return PretrainConfig(**base)
 

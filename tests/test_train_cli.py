@@ -28,8 +28,8 @@ def test_train_writes_a_complete_run_folder_and_resumes(tiny_run_config, tmp_pat
     assert [e["epoch"] for e in evals] == [1, 2] and 0 <= evals[0]["Col_obj"] <= 1
     assert any(p.name.startswith("events.out.tfevents") for p in (run / "tb").iterdir())
     capsys.readouterr()
-    # the device is not a setting of the run: a run resumes on another one
-    assert main(["train", "--config", str(tiny_run_config), "--epochs", "3", "--device", "cpu"]) == 0
+    # the device is not a setting of the run: a run resumes on another one (the CPU run on a GPU, where there is one)
+    assert main(["train", "--config", str(tiny_run_config), "--epochs", "3", "--device", "auto"]) == 0
     assert "resuming" in capsys.readouterr().out
     assert json.loads((run / "checkpoint" / "trainer.json").read_text())["epoch"] == 3
     evals = [json.loads(l) for l in (run / "eval.jsonl").read_text().splitlines()]
