@@ -156,11 +156,11 @@ class DDPO:
         self._env_seeded = True
         obs, _ = self.env.reset(seed=seed, options={"floor_indices": floor_idx})
         steps = []
+        on = self.device  # rollouts are stored on the CPU; the policy runs where its weights are
         for _ in range(venv.num_steps):
             x_t = torch.from_numpy(obs["x_t"])
             t = torch.from_numpy(obs["t"])
             floor = torch.from_numpy(obs["floor"])
-            on = self.device  # rollouts are stored on the CPU; the policy runs where its weights are
             action, log_prob = (v.cpu() for v in self.policy.act(x_t.to(on), t.to(on), floor.to(on),
                                                                  generator=self.generator))
             steps.append({"x_t": x_t, "t": t, "floor": floor, "action": action, "sample_log_prob": log_prob})
