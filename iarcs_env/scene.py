@@ -220,16 +220,24 @@ class SceneBatch:
             raise ValueError(f"decoding {x.shape[0]} scenes needs as many floor plans; got {len(floors)}")
         x = x.detach().float()
         extents = floor_half_extents(floors) if stats.translation_frame == "room" else None
-        s_lo, s_hi = stats.size_bounds(x)
-        g = x[..., :6].clamp(-1, 1)
-        half = ((g[..., 3:6] + 1) / 2 * (s_hi - s_lo) + s_lo).clamp_min(1e-3)
-        yaws = torch.atan2(x[..., 7], x[..., 6])
-        t_lo, t_hi = translation_scale(stats, x, extents, half, yaws)  # room frame: needs the footprint
-        trans = (g[..., 0:3] + 1) / 2 * (t_hi - t_lo) + t_lo
+        trans, half, yaws = decode_geometry(x, stats, extents)
         labels = x[..., 8:].argmax(-1)
         empty = labels == spec.empty_index
         trans, half, yaws = trans.masked_fill(empty[..., None], 0), half.masked_fill(empty[..., None], 0), yaws.masked_fill(empty, 0)
         return cls(spec, labels, trans, half, yaws, list(floors), list(ids or []))
+
+
+def decode_geometry(x: torch.Tensor, stats: "DatasetStats", extents: torch.Tensor | None = None
+                    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """(translations, half sizes, yaws) in metres of model features ``x`` (B, N, 8 + K), differentiable
+    where the scaled geometry lies in [-1, 1]; ``extents`` as for :func:`translation_scale`."""
+    s_lo, s_hi = stats.size_bounds(x)
+    g = x[..., :6].clamp(-1, 1)
+    half = ((g[..., 3:6] + 1) / 2 * (s_hi - s_lo) + s_lo).clamp_min(1e-3)
+    yaws = torch.atan2(x[..., 7], x[..., 6])
+    t_lo, t_hi = translation_scale(stats, x, extents, half, yaws)  # room frame: needs the footprint
+    trans = (g[..., 0:3] + 1) / 2 * (t_hi - t_lo) + t_lo
+    return trans, half, yaws
 
 
 def floor_half_extents(floors: Sequence[FloorPlan]) -> torch.Tensor:

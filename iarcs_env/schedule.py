@@ -165,12 +165,14 @@ class NoiseSchedule:
     def training_loss(self, model_fn: Callable[[torch.Tensor, torch.Tensor], torch.Tensor], x0: torch.Tensor,
                       generator: torch.Generator | None = None, t: torch.Tensor | None = None,
                       noise: torch.Tensor | None = None, reduction: str = "mean",
-                      feature_weights: torch.Tensor | None = None) -> torch.Tensor:
+                      feature_weights: torch.Tensor | None = None,
+                      x0_penalty: Callable[[torch.Tensor, torch.Tensor, torch.Tensor], torch.Tensor] | None = None) -> torch.Tensor:
         """The DDPM "simple" loss E_{t, eps} || eps - eps_theta(x_t, t) ||^2 (mean over elements).
 
         ``model_fn(x_t, t)`` returns the predicted noise. ``reduction="none"`` gives one loss per scene.
         ``feature_weights`` (one per feature, broadcast over the last dimension) reweights the squared error
-        of each feature; None is the plain loss.
+        of each feature; None is the plain loss. ``x0_penalty(x0_hat, x0, t)`` (one value per scene) is an
+        auxiliary loss on the clean scene the model predicts (:meth:`predict_x0`), added to the scene's loss.
         """
         b = x0.shape[0]
         if t is None:
@@ -178,10 +180,13 @@ class NoiseSchedule:
         if noise is None:
             noise = standard_normal(x0.shape, generator, x0.device, x0.dtype)
         x_t = self.q_sample(x0, t, noise)
-        err = (model_fn(x_t, t) - noise) ** 2
+        eps = model_fn(x_t, t)
+        err = (eps - noise) ** 2
         if feature_weights is not None:
             err = err * feature_weights
         per_scene = err.flatten(1).mean(1)
+        if x0_penalty is not None:
+            per_scene = per_scene + x0_penalty(self.predict_x0(x_t, t, eps), x0, t)
         return per_scene.mean() if reduction == "mean" else per_scene
 
     # --- DDIM ---------------------------------------------------------------------------------------

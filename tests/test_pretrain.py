@@ -12,7 +12,8 @@ import torch
 
 from agents.denoiser import ScenePrior
 from agents.pretrain import (PRIOR_FILE, STATE_FILE, PretrainConfig, SceneTensors, config_from_dict,
-                             encode_batch, load_config, lr_at, resolve_dataset, stats_for_training, train)
+                             encode_batch, load_config, lr_at, overlap_excess, resolve_dataset,
+                             stats_for_training, train)
 from iarcs_env import FloorPlan, Layout, get_room
 from iarcs_env.datasets import save_layouts
 from iarcs_env.scene import SceneBatch, floor_features
@@ -211,6 +212,45 @@ def test_low_noise_fine_tune_trains_only_below_max_timestep(tmp_path, monkeypatc
     assert len(seen) == 5 and all(int(t.max()) < 40 for t in seen)
     with pytest.raises(ValueError, match="max_timestep"):
         tiny_config(tmp_path, max_timestep=1001)
+
+
+def test_overlap_loss_measures_the_excess_over_the_data_and_pushes_objects_apart():
+    """The ``overlap_weight`` loss: 0 on the data (tucked-in objects included), the extra overlap volume in
+    m^3 when the prediction moves an object into another, only below ``overlap_max_timestep``."""
+    from iarcs_env.geometry import box_overlap_volumes
+    from iarcs_env.scene import floor_half_extents
+    from tests.scene_factory import box, make_layout
+
+    # a bed, and a nightstand tucked 0.1 m into its side (the data's own overlap: 0.1 x 0.4 x 0.5 m^3)
+    room = make_layout([box("double_bed", 2.0, 1.2, 0.9, 1.0, hy=0.5), box("nightstand", 3.15, 0.5, 0.35, 0.2, hy=0.25),
+                        box("wardrobe", 0.4, 2.6, 0.3, 0.35, yaw=math.pi / 2, hy=1.0)]).centred()
+    stats = stats_for_training([room], "bedroom", rotation_augment=True)
+    stats.translation_frame = "room"
+    tensors = SceneTensors.from_layouts([room], BEDROOM.max_objects)
+    batch = tensors.batch(torch.arange(1))
+    x0, _ = encode_batch(BEDROOM, stats, *batch)
+    extents = floor_half_extents([room.floor])
+    penalty = overlap_excess(BEDROOM, stats, extents, weight=2.0, max_timestep=100)
+    early = torch.tensor([10])
+    assert float(penalty(x0, x0, early)) == 0.0
+    # the prediction moves the wardrobe 0.5 m into the bed's corner (along x); the pair overlapped 0 before
+    labels, trans, half, yaws = batch[:4]
+    moved = trans.clone()
+    moved[0, 2, 0] = trans[0, 0, 0] - 0.9 - 0.35 + 0.5  # wardrobe turned 90 degrees: 0.35 m half width along x
+    moved[0, 2, 2] = trans[0, 0, 2] + 0.6
+    x_hat, _ = encode_batch(BEDROOM, stats, labels, moved, half, yaws, *batch[4:])
+    valid = labels != BEDROOM.empty_index
+    exact = box_overlap_volumes(moved, half, yaws, valid)[0, 0, 2]
+    assert float(exact) > 0.05
+    assert float(penalty(x_hat, x0, early)) == pytest.approx(2.0 * float(exact), rel=1e-4)
+    assert float(penalty(x_hat, x0, torch.tensor([100]))) == 0.0
+    # a step down its gradient moves the wardrobe out of the bed
+    x_hat.requires_grad_(True)
+    penalty(x_hat, x0, early).sum().backward()
+    assert float(x_hat.grad[0, 2, 0]) > 0  # the wardrobe (left of the bed) is pushed towards -x
+    assert float(x_hat.grad[0, 0, 0]) < 0  # the bed towards +x
+    with pytest.raises(ValueError, match="overlap_weight"):
+        PretrainConfig(overlap_weight=-1)
 
 
 def test_fine_tuning_starts_from_the_init_prior(tmp_path):
