@@ -88,9 +88,9 @@ class PretrainConfig:
     overlap_weight: float = 0.0
     """Weight of an auxiliary loss on the predicted clean layout x0_hat (after DiffuScene's physical IoU
     loss): for every pair of objects of the training scene, the volume (m^3) by which their predicted
-    boxes overlap more than the pair does in the data, summed per scene (:func:`overlap_excess`), at noise
-    levels t < ``overlap_max_timestep``. Aims at gross collisions without penalising the data's own
-    tucked-in nightstands. 0: the plain DDPM loss."""
+    footprints overlap more than the pair's do in the data, over the pair's vertical overlap in the data,
+    summed per scene (:func:`overlap_excess`), at noise levels t < ``overlap_max_timestep``. Aims at gross
+    collisions without penalising the data's own tucked-in nightstands. 0: the plain DDPM loss."""
     overlap_max_timestep: int = 100
     """The overlap loss applies below this t only: at higher noise x0_hat is a blurred average of layouts
     whose boxes overlap by nature (5 m^3 per scene at t = 400 for the shipped prior)."""
@@ -244,21 +244,23 @@ def overlap_excess(spec, stats: DatasetStats, extents: torch.Tensor, weight: flo
                    max_timestep: int = NoiseSchedule().num_train_timesteps) -> Callable:
     """The ``x0_penalty`` of :meth:`NoiseSchedule.training_loss` for ``overlap_weight``: per scene with
     t < ``max_timestep``, ``weight`` times the sum over pairs of objects (non-empty slots of x0) of
-    relu(V(x0_hat) - V(x0)), V the overlap volume of the two boxes' axis-aligned bounds (exact for the
-    axis-aligned furniture of the data); 0 for the other scenes."""
+    relu(A(x0_hat) - A(x0)) * H(x0): A the overlap area of the two footprints' axis-aligned bounds (exact
+    for the axis-aligned furniture of the data), H the pair's vertical overlap in the data. So the loss
+    is the overlap volume beyond the data's, and it cannot be lowered by lifting objects off the floor
+    (heights get no gradient; a lamp above a bed costs nothing); 0 for the other scenes."""
 
-    def boxes(x):
+    def overlaps(x, axes):  # (B, N, N) overlap lengths of the boxes' bounds along ``axes``, multiplied
         trans, half, yaws = decode_geometry(x, stats, extents)
         reach = footprint_reach(half[..., [0, 2]], torch.cos(yaws), torch.sin(yaws))
-        bound = torch.stack([reach[..., 0], half[..., 1], reach[..., 1]], -1)
-        lo, hi = trans - bound, trans + bound
+        bound = torch.stack([reach[..., 0], half[..., 1], reach[..., 1]], -1)[..., axes]
+        lo, hi = trans[..., axes] - bound, trans[..., axes] + bound
         return (torch.minimum(hi[:, :, None], hi[:, None]) - torch.maximum(lo[:, :, None], lo[:, None])
-                ).clamp_min(0).prod(-1)  # (B, N, N) pairwise overlap volumes
+                ).clamp_min(0).prod(-1)
 
     def penalty(x0_hat, x0, t):
         objects = x0[..., 8:].argmax(-1) != spec.empty_index
         pairs = (objects[:, :, None] & objects[:, None]).triu(1)
-        excess = (boxes(x0_hat) - boxes(x0)).clamp_min(0) * pairs
+        excess = (overlaps(x0_hat, [0, 2]) - overlaps(x0, [0, 2])).clamp_min(0) * overlaps(x0, [1]) * pairs
         return weight * excess.flatten(1).sum(1) * (t < max_timestep)
 
     return penalty

@@ -8,7 +8,7 @@ Run as a script (not an import: torchrl installs a site-packages package called 
 
 For each reference room the prior samples one scene on that room's floor plan (20-step DDIM), so the
 reference and generated sets share their floors. Reported, for the reference and for the samples:
-``iarcs_env.metrics.evaluate_layouts`` (Col_obj, Col_scene, R_out, R_reach, R_walkable, objects per room,
+``iarcs_env.metrics.evaluate_layouts`` (Col_obj, Col_scene, R_out, R_off_floor, R_reach, R_walkable, objects per room,
 KL_class = KL(reference || generated) with eps 1e-6, count_distance = earth mover's distance of the
 object counts), plus ``iarcs_env.datasets.realism``'s object-count TVD and class KL (eps 1e-3).
 ``--reference procedural`` uses the embedded generator with ``--data-seed`` (0 = the first rooms of the
@@ -54,7 +54,7 @@ from iarcs_env.metrics import evaluate_layouts  # noqa: E402
 from iarcs_env.scene import SceneBatch  # noqa: E402
 from iarcs_env.tasks import TASKS, task_success  # noqa: E402
 
-KEYS = ("Col_obj", "Col_scene", "R_out", "R_reach", "R_walkable", "mean_objects")
+KEYS = ("Col_obj", "Col_scene", "R_out", "R_off_floor", "R_reach", "R_walkable", "mean_objects")
 
 
 def evaluate(prior: ScenePrior, reference: list, seed: int = 0, etas=(1.0,), num_steps: int = 20,
@@ -167,8 +167,8 @@ def position_errors(result: SceneBatch, reference: SceneBatch) -> dict:
 
 
 def table(rows: dict) -> str:
-    head = ("| scenes | Col_obj | Col_scene | R_out | R_reach | R_walkable | objects / room | KL_class (1e-6) "
-            "| class KL (1e-3) | count TVD | count EMD |\n|---|" + "---:|" * 10)
+    head = ("| scenes | Col_obj | Col_scene | R_out | R_off_floor | R_reach | R_walkable | objects / room "
+            "| KL_class (1e-6) | class KL (1e-3) | count TVD | count EMD |\n|---|" + "---:|" * 11)
     lines = [head]
     for name, r in rows.items():
         vals = [f"{r[k]:.3f}" if k != "mean_objects" else f"{r[k]:.2f}" for k in KEYS]

@@ -216,7 +216,8 @@ def test_low_noise_fine_tune_trains_only_below_max_timestep(tmp_path, monkeypatc
 
 def test_overlap_loss_measures_the_excess_over_the_data_and_pushes_objects_apart():
     """The ``overlap_weight`` loss: 0 on the data (tucked-in objects included), the extra overlap volume in
-    m^3 when the prediction moves an object into another, only below ``overlap_max_timestep``."""
+    m^3 when the prediction moves an object into another, only below ``overlap_max_timestep``, and never
+    lowered by moving objects up or down."""
     from iarcs_env.geometry import box_overlap_volumes
     from iarcs_env.scene import floor_half_extents
     from tests.scene_factory import box, make_layout
@@ -244,11 +245,17 @@ def test_overlap_loss_measures_the_excess_over_the_data_and_pushes_objects_apart
     assert float(exact) > 0.05
     assert float(penalty(x_hat, x0, early)) == pytest.approx(2.0 * float(exact), rel=1e-4)
     assert float(penalty(x_hat, x0, torch.tensor([100]))) == 0.0
+    # lifting the wardrobe off the floor does not pay: heights count as in the data
+    lifted = moved.clone()
+    lifted[0, 2, 1] += 1.5
+    x_lifted, _ = encode_batch(BEDROOM, stats, labels, lifted, half, yaws, *batch[4:])
+    assert float(penalty(x_lifted, x0, early)) == pytest.approx(float(penalty(x_hat, x0, early)), rel=1e-6)
     # a step down its gradient moves the wardrobe out of the bed
     x_hat.requires_grad_(True)
     penalty(x_hat, x0, early).sum().backward()
     assert float(x_hat.grad[0, 2, 0]) > 0  # the wardrobe (left of the bed) is pushed towards -x
     assert float(x_hat.grad[0, 0, 0]) < 0  # the bed towards +x
+    assert float(x_hat.grad[0, :3, 1].abs().max()) == 0.0  # and no object up or down
     with pytest.raises(ValueError, match="overlap_weight"):
         PretrainConfig(overlap_weight=-1)
 
