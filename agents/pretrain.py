@@ -245,9 +245,10 @@ def overlap_excess(spec, stats: DatasetStats, extents: torch.Tensor, weight: flo
     """The ``x0_penalty`` of :meth:`NoiseSchedule.training_loss` for ``overlap_weight``: per scene with
     t < ``max_timestep``, ``weight`` times the sum over pairs of objects (non-empty slots of x0) of
     relu(A(x0_hat) - A(x0)) * H(x0): A the overlap area of the two footprints' axis-aligned bounds (exact
-    for the axis-aligned furniture of the data), H the pair's vertical overlap in the data. So the loss
-    is the overlap volume beyond the data's, and it cannot be lowered by lifting objects off the floor
-    (heights get no gradient; a lamp above a bed costs nothing); 0 for the other scenes."""
+    for the axis-aligned furniture of the data), H the pair's vertical overlap in the data; 0 for the other
+    scenes. The footprints of x0_hat are the data's (sizes and yaws) at x0_hat's floor positions: the loss is
+    the overlap volume beyond the data's and moves objects apart on the floor, it cannot be lowered by
+    shrinking, turning or lifting them (a lamp above a bed costs nothing)."""
 
     def overlaps(x, axes):  # (B, N, N) overlap lengths of the boxes' bounds along ``axes``, multiplied
         trans, half, yaws = decode_geometry(x, stats, extents)
@@ -260,7 +261,8 @@ def overlap_excess(spec, stats: DatasetStats, extents: torch.Tensor, weight: flo
     def penalty(x0_hat, x0, t):
         objects = x0[..., 8:].argmax(-1) != spec.empty_index
         pairs = (objects[:, :, None] & objects[:, None]).triu(1)
-        excess = (overlaps(x0_hat, [0, 2]) - overlaps(x0, [0, 2])).clamp_min(0) * overlaps(x0, [1]) * pairs
+        placed = torch.cat([x0_hat[..., :3], x0[..., 3:]], -1)  # predicted positions, the data's boxes
+        excess = (overlaps(placed, [0, 2]) - overlaps(x0, [0, 2])).clamp_min(0) * overlaps(x0, [1]) * pairs
         return weight * excess.flatten(1).sum(1) * (t < max_timestep)
 
     return penalty

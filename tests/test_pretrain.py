@@ -217,7 +217,7 @@ def test_low_noise_fine_tune_trains_only_below_max_timestep(tmp_path, monkeypatc
 def test_overlap_loss_measures_the_excess_over_the_data_and_pushes_objects_apart():
     """The ``overlap_weight`` loss: 0 on the data (tucked-in objects included), the extra overlap volume in
     m^3 when the prediction moves an object into another, only below ``overlap_max_timestep``, and never
-    lowered by moving objects up or down."""
+    lowered by lifting, shrinking or turning objects."""
     from iarcs_env.geometry import box_overlap_volumes
     from iarcs_env.scene import floor_half_extents
     from tests.scene_factory import box, make_layout
@@ -255,7 +255,8 @@ def test_overlap_loss_measures_the_excess_over_the_data_and_pushes_objects_apart
     penalty(x_hat, x0, early).sum().backward()
     assert float(x_hat.grad[0, 2, 0]) > 0  # the wardrobe (left of the bed) is pushed towards -x
     assert float(x_hat.grad[0, 0, 0]) < 0  # the bed towards +x
-    assert float(x_hat.grad[0, :3, 1].abs().max()) == 0.0  # and no object up or down
+    assert float(x_hat.grad[0, :3, 1].abs().max()) == 0.0  # and no object up or down,
+    assert float(x_hat.grad[0, :3, 3:].abs().max()) == 0.0  # nor resized, turned or relabelled
     with pytest.raises(ValueError, match="overlap_weight"):
         PretrainConfig(overlap_weight=-1)
 
