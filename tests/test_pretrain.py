@@ -261,6 +261,16 @@ def test_overlap_loss_measures_the_excess_over_the_data_and_pushes_objects_apart
         PretrainConfig(overlap_weight=-1)
 
 
+def test_pretraining_adds_the_overlap_loss_when_asked(tmp_path):
+    quiet = dict(progress=False, log=lambda m: None)
+    rooms = toy_bedrooms(40)
+    plain = train(tiny_config(tmp_path / "plain", steps=1, log_every=1), rooms, **quiet)
+    overlap = train(tiny_config(tmp_path / "overlap", steps=1, log_every=1, overlap_weight=1.0,
+                                overlap_max_timestep=1000), rooms, **quiet)
+    # the same first batch, noise and network: the overlap term of a random network's x0_hat adds to the loss
+    assert math.isfinite(overlap.losses[0][1]) and overlap.losses[0][1] > plain.losses[0][1] + 0.01
+
+
 def test_fine_tuning_starts_from_the_init_prior(tmp_path):
     quiet = dict(progress=False, log=lambda m: None)
     base = train(tiny_config(tmp_path / "base", steps=60), toy_bedrooms(80), **quiet)
