@@ -250,19 +250,20 @@ def overlap_excess(spec, stats: DatasetStats, extents: torch.Tensor, weight: flo
     the overlap volume beyond the data's and moves objects apart on the floor, it cannot be lowered by
     shrinking, turning or lifting them (a lamp above a bed costs nothing)."""
 
-    def overlaps(x, axes):  # (B, N, N) overlap lengths of the boxes' bounds along ``axes``, multiplied
+    def overlaps(x):  # (B, N, N, 3) overlap lengths of each pair of boxes' bounds along x, y and z
         trans, half, yaws = decode_geometry(x, stats, extents)
         reach = footprint_reach(half[..., [0, 2]], torch.cos(yaws), torch.sin(yaws))
-        bound = torch.stack([reach[..., 0], half[..., 1], reach[..., 1]], -1)[..., axes]
-        lo, hi = trans[..., axes] - bound, trans[..., axes] + bound
-        return (torch.minimum(hi[:, :, None], hi[:, None]) - torch.maximum(lo[:, :, None], lo[:, None])
-                ).clamp_min(0).prod(-1)
+        bound = torch.stack([reach[..., 0], half[..., 1], reach[..., 1]], -1)
+        lo, hi = trans - bound, trans + bound
+        return (torch.minimum(hi[:, :, None], hi[:, None]) - torch.maximum(lo[:, :, None], lo[:, None])).clamp_min(0)
 
     def penalty(x0_hat, x0, t):
         objects = x0[..., 8:].argmax(-1) != spec.empty_index
         pairs = (objects[:, :, None] & objects[:, None]).triu(1)
-        placed = torch.cat([x0_hat[..., :3], x0[..., 3:]], -1)  # predicted positions, the data's boxes
-        excess = (overlaps(placed, [0, 2]) - overlaps(x0, [0, 2])).clamp_min(0) * overlaps(x0, [1]) * pairs
+        placed = overlaps(torch.cat([x0_hat[..., :3], x0[..., 3:]], -1))  # predicted positions, the data's boxes
+        data = overlaps(x0)
+        area = lambda o: o[..., 0] * o[..., 2]  # noqa: E731
+        excess = (area(placed) - area(data)).clamp_min(0) * data[..., 1] * pairs
         return weight * excess.flatten(1).sum(1) * (t < max_timestep)
 
     return penalty

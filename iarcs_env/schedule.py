@@ -166,7 +166,8 @@ class NoiseSchedule:
                       generator: torch.Generator | None = None, t: torch.Tensor | None = None,
                       noise: torch.Tensor | None = None, reduction: str = "mean",
                       feature_weights: torch.Tensor | None = None,
-                      x0_penalty: Callable[[torch.Tensor, torch.Tensor, torch.Tensor], torch.Tensor] | None = None) -> torch.Tensor:
+                      x0_penalty: Callable[[torch.Tensor, torch.Tensor, torch.Tensor], torch.Tensor] | None = None
+                      ) -> torch.Tensor:
         """The DDPM "simple" loss E_{t, eps} || eps - eps_theta(x_t, t) ||^2 (mean over elements).
 
         ``model_fn(x_t, t)`` returns the predicted noise. ``reduction="none"`` gives one loss per scene.
