@@ -59,6 +59,18 @@ class DDPOConfig:
     """Standardise each term of a composite reward before the weighted sum, so that every term carries its
     weight's share of the signal whatever the spread of its values (e.g. a task reward in [0, 1] next to
     universal rewards that vary much more)."""
+    content_baseline_epochs: int = 0
+    """0: off. Otherwise the part of the reward that a scene's content explains (its class counts, object
+    count and ground footprint area: :func:`content_features`) is subtracted before the advantages are
+    normalised, fitted by ridge regression on the last ``content_baseline_epochs`` epochs' scenes. The
+    policy gradient then has no say on which objects a scene draws, only on how they are placed: the
+    universal rewards are met by repairing placement, not by swapping furniture for pendant lamps."""
+    x0_baseline: bool = False
+    """Per-step advantages with the reward of the clean scene the policy predicts at each step as a baseline:
+    A_t = r(x_0) - beta_t r(x0_hat(x_t)), beta_t the least-squares fit over the batch (deviations from each
+    floor's mean), then standardised per step. The baseline is a function of the state x_t only, so the
+    gradient stays unbiased; it takes out of step t's credit what the chain had already decided at x_t
+    (which objects the room holds, once they have settled), which is most of a scene's reward spread."""
     kl_coef: float = 0.0
     """Weight of a KL penalty to the policy the adapter starts from (its reference adapter, e.g. stage 1 for a
     partial stage-2 adapter; else the prior, adapters disabled), against diversity collapse and drift."""
@@ -72,6 +84,16 @@ class DDPOConfig:
         if unknown:
             raise ValueError(f"unknown DDPO hyper-parameter(s) {', '.join(unknown)}; known: {', '.join(sorted(known))}")
         return cls(**values)
+
+
+def content_features(scene) -> torch.Tensor:
+    """(B, F) float64 description of what a :class:`~iarcs_env.scene.SceneBatch` holds, not where: objects of
+    each class, a one-hot of the object count, and the ground objects' total footprint area (m^2)."""
+    k = len(scene.spec.classes)
+    classes = torch.nn.functional.one_hot(scene.labels.clamp(min=0), k + 1)[..., :k] * scene.mask[..., None]
+    count = torch.nn.functional.one_hot(scene.mask.sum(1).long(), scene.num_slots + 1)
+    area = (4 * scene.half_sizes[..., 0] * scene.half_sizes[..., 2] * scene.ground_mask).sum(1, keepdim=True)
+    return torch.cat([classes.sum(1), count, area], 1).double().cpu()
 
 
 class DDPO:
@@ -106,6 +128,9 @@ class DDPO:
         if self.venv.stats.to_json() != policy.prior.stats.to_json():
             raise ValueError("the env scales features with other dataset statistics than the prior; "
                              "create the env with stats=prior.stats")
+        if cfg.x0_baseline and (cfg.per_term_advantages or cfg.content_baseline_epochs):
+            raise ValueError("x0_baseline replaces the per-scene advantage; it cannot be combined with "
+                             "per_term_advantages or content_baseline_epochs: set only one of them")
         if cfg.per_term_advantages and not isinstance(getattr(self.venv.reward_fn, "weights", None), dict):
             raise ValueError("per_term_advantages needs a composite reward (rewards.composite.CompositeReward) whose "
                              "terms and weights it can standardise")
@@ -119,6 +144,7 @@ class DDPO:
         self.epoch = 0
         self.num_timesteps = 0
         self._env_seeded = False
+        self._content_buffer: list[tuple[torch.Tensor, torch.Tensor]] = []  # (features, reward) per epoch, demeaned
         self.tensorboard_log = Path(tensorboard_log) if tensorboard_log and distributed.is_main() else None
         distributed.broadcast_parameters(policy.trainable_parameters())  # every rank starts from rank 0's adapter
         self._writer = None
@@ -161,13 +187,23 @@ class DDPO:
             x_t = torch.from_numpy(obs["x_t"])
             t = torch.from_numpy(obs["t"])
             floor = torch.from_numpy(obs["floor"])
-            action, log_prob = (v.cpu() for v in self.policy.act(x_t.to(on), t.to(on), floor.to(on),
-                                                                 generator=self.generator))
-            steps.append({"x_t": x_t, "t": t, "floor": floor, "action": action, "sample_log_prob": log_prob})
+            action, log_prob, x0_hat = (v.cpu() for v in self.policy.act(x_t.to(on), t.to(on), floor.to(on),
+                                                                         generator=self.generator, return_x0=True))
+            steps.append({"x_t": x_t, "t": t, "floor": floor, "action": action, "sample_log_prob": log_prob,
+                          "x0_hat": x0_hat})
             obs, reward, terminated, _, info = self.env.step(action.numpy())
         if not terminated.all():
             raise RuntimeError("the environment did not terminate after num_steps steps")
+        if cfg.x0_baseline:  # r(x0_hat(x_t)) of every step, on the episode's floors (not yet reset)
+            from iarcs_env.env import evaluate_reward
+
+            values = [evaluate_reward(venv.reward_fn, venv.decode(s["x0_hat"].numpy()))[0] for s in steps]
+            td_values = torch.as_tensor(np.stack(values, 1), dtype=torch.float32)
+        for s in steps:
+            del s["x0_hat"]
         td = TensorDict({k: torch.stack([s[k] for s in steps], 1) for k in steps[0]}, batch_size=[venv.num_envs, venv.num_steps])
+        if cfg.x0_baseline:
+            td["reward_x0_hat"] = td_values
         td["reward"] = torch.as_tensor(reward, dtype=torch.float32)[:, None].expand(-1, venv.num_steps)
         td["floor_index"] = torch.as_tensor(floor_idx)[:, None].expand(-1, venv.num_steps)
         self._last_terms = info.get("terms", {})
@@ -175,35 +211,80 @@ class DDPO:
             terms = np.stack([np.asarray(v, dtype=np.float32) for v in self._last_terms.values()], -1)
             td["terms"] = torch.from_numpy(terms)[:, None].expand(-1, venv.num_steps, -1)
         self._last_scene = info.get("scene")
+        if cfg.content_baseline_epochs and self._last_scene is not None:
+            td["content"] = content_features(self._last_scene).float()[:, None].expand(-1, venv.num_steps, -1)
         self.num_timesteps += venv.num_envs * venv.num_steps
         return td
 
     def compute_advantages(self, rewards: torch.Tensor, floor_index: torch.Tensor,
-                           terms: torch.Tensor | None = None) -> torch.Tensor:
+                           terms: torch.Tensor | None = None, content: torch.Tensor | None = None,
+                           x0_values: torch.Tensor | None = None) -> torch.Tensor:
         """A = (r - mean) / (std + 1e-8) per floor plan (or per batch), clipped to +-adv_clip_max.
 
         With ``per_term_advantages`` and the composite's per-term values ``terms`` (B, K), r is replaced by
-        ``sum_k w_k z_k`` where z_k is term k standardised the same way. Under ``torchrun`` the statistics are
-        those of every rank's scenes; the result is this rank's part."""
+        ``sum_k w_k z_k`` where z_k is term k standardised the same way. With ``content_baseline_epochs`` and
+        the scenes' :func:`content_features` ``content`` (B, F), r is replaced by its residual
+        r - content @ beta (:meth:`_content_residual`). With ``x0_baseline`` and the rewards of each step's
+        x0_hat ``x0_values`` (B, S) the result is per step, (B, S) (:meth:`_x0_residual`). Under ``torchrun``
+        the statistics are those of every rank's scenes; the result is this rank's part."""
         rewards, floor_index = distributed.all_gather(rewards), distributed.all_gather(floor_index)
+        if self.config.x0_baseline and x0_values is not None:
+            c = self.config.adv_clip_max
+            residual = self._x0_residual(rewards, floor_index, distributed.all_gather(x0_values))
+            return distributed.local_part(residual.clamp(-c, c).float())
         terms = distributed.all_gather(terms) if terms is not None else None
         if self.config.per_term_advantages and terms is not None:
             weights = torch.tensor(list(self.venv.reward_fn.weights.values()), dtype=torch.float64)
             z = torch.stack([self._standardise(terms[:, k], floor_index) for k in range(terms.shape[1])], 1)
             rewards = (z * weights).sum(1)
+        if self.config.content_baseline_epochs and content is not None:
+            rewards = self._content_residual(rewards, floor_index, distributed.all_gather(content))
         c = self.config.adv_clip_max
         return distributed.local_part(self._standardise(rewards, floor_index).clamp(-c, c).float())
+
+    def _groups(self, floor_index: torch.Tensor) -> list[torch.Tensor]:
+        """Boolean masks of the advantage groups: one per floor plan, or the whole batch."""
+        if not self.config.per_floor_advantages:
+            return [torch.ones_like(floor_index, dtype=torch.bool)]
+        return [floor_index == g for g in floor_index.unique()]
 
     def _standardise(self, values: torch.Tensor, floor_index: torch.Tensor) -> torch.Tensor:
         r = values.double()
         out = torch.zeros_like(r)
-        groups = floor_index.unique() if self.config.per_floor_advantages else [None]
-        for g in groups:
-            m = floor_index == g if g is not None else torch.ones_like(r, dtype=torch.bool)
+        for m in self._groups(floor_index):
             sel = r[m]
             std = sel.std(unbiased=False) if sel.numel() > 1 else sel.new_tensor(0.0)
             out[m] = (sel - sel.mean()) / (std + 1e-8)
         return out
+
+    def _x0_residual(self, rewards: torch.Tensor, floor_index: torch.Tensor, values: torch.Tensor) -> torch.Tensor:
+        """(B, S) standardised r - beta_t r(x0_hat(x_t)) (``x0_baseline``). Logs ``x0_baseline_r2``, the share
+        of the within-group reward variance the baseline explains, averaged over the steps."""
+        r, v = rewards.double(), values.double()
+        rd, vd = r.clone(), v.clone()
+        for m in self._groups(floor_index):
+            rd[m], vd[m] = r[m] - r[m].mean(), v[m] - v[m].mean(0)
+        beta = (vd * rd[:, None]).sum(0) / (vd**2).sum(0).clamp(min=1e-12)
+        residual = rd[:, None] - beta * vd
+        self._x0_r2 = float((1 - residual.var(0) / rd.var().clamp(min=1e-12)).mean())
+        return residual / (residual.std(0, unbiased=False) + 1e-8)
+
+    def _content_residual(self, rewards: torch.Tensor, floor_index: torch.Tensor, content: torch.Tensor,
+                          ridge: float = 1.0) -> torch.Tensor:
+        """r - X beta: beta fits the rewards' deviations from their group means on the features' deviations
+        (ridge ``ridge``) over this epoch's and the previous ``content_baseline_epochs - 1`` epochs' scenes.
+        Logs ``content_r2``, the share of this epoch's within-group reward variance the content explains."""
+        r, x = rewards.double(), content.double()
+        rd, xd = r.clone(), x.clone()
+        for m in self._groups(floor_index):
+            rd[m], xd[m] = r[m] - r[m].mean(), x[m] - x[m].mean(0)
+        self._content_buffer = (self._content_buffer + [(xd, rd)])[-self.config.content_baseline_epochs:]
+        bx = torch.cat([b[0] for b in self._content_buffer])
+        by = torch.cat([b[1] for b in self._content_buffer])
+        beta = torch.linalg.solve(bx.T @ bx + ridge * torch.eye(bx.shape[1], dtype=bx.dtype), bx.T @ by)
+        explained = xd @ beta
+        self._content_r2 = float(1 - (rd - explained).var() / rd.var().clamp(min=1e-12))
+        return r - x @ beta
 
     # --- updates ---------------------------------------------------------------------------------------
     def train(self, rollout: TensorDict) -> dict[str, float]:
@@ -280,8 +361,12 @@ class DDPO:
             rollout = torch.cat(rollouts, 0)
             rewards = rollout["reward"][:, 0]
             terms = rollout["terms"][:, 0] if "terms" in rollout.keys() else None
-            rollout["advantage"] = self.compute_advantages(rewards, rollout["floor_index"][:, 0], terms)[:, None, None] \
-                .expand(-1, rollout.batch_size[1], 1).clone()
+            content = rollout["content"][:, 0] if "content" in rollout.keys() else None
+            x0_values = rollout.get("reward_x0_hat", None)
+            advantage = self.compute_advantages(rewards, rollout["floor_index"][:, 0], terms, content, x0_values)
+            if advantage.ndim == 1:  # one advantage per scene, shared by its steps
+                advantage = advantage[:, None].expand(-1, rollout.batch_size[1])
+            rollout["advantage"] = advantage[..., None].clone()
             t1 = time.perf_counter()
             everyone = distributed.all_gather(rewards)  # the statistics of every rank's scenes
             stats = {"reward_mean": float(everyone.mean()), "reward_std": float(everyone.std())}
@@ -289,6 +374,10 @@ class DDPO:
                 means = torch.tensor([[np.mean(v) for v in self._last_terms.values()]], dtype=torch.float64)
                 stats.update({f"reward_{k}": float(m)
                               for k, m in zip(self._last_terms, distributed.all_gather(means).mean(0))})
+            if content is not None:
+                stats["content_r2"] = self._content_r2
+            if x0_values is not None:
+                stats["x0_baseline_r2"] = self._x0_r2
             cb.on_rollout_end(stats)
             stats.update(self.train(rollout))
             self.epoch += 1
@@ -408,7 +497,7 @@ class DDPO:
                  "num_timesteps": self.num_timesteps, "adapter": self.policy.adapter,
                  "optimizer": self.optimizer.state_dict(), "rng": self.rng.bit_generator.state,
                  "generator": self.generator.get_state(), "env_rng": self.venv.np_random.bit_generator.state,
-                 "env_seeded": self._env_seeded}
+                 "env_seeded": self._env_seeded, "content_buffer": self._content_buffer}
         torch.save(state, tmp / "trainer_state.pt")
         (tmp / "trainer.json").write_text(json.dumps({k: state[k] for k in ("algorithm", "config", "epoch",
                                                                             "num_timesteps", "adapter")}, indent=1))
@@ -448,6 +537,7 @@ class DDPO:
         model.generator.set_state(state["generator"])
         model.venv.np_random.bit_generator.state = state["env_rng"]
         model._env_seeded = state["env_seeded"]
+        model._content_buffer = state.get("content_buffer", [])
         if distributed.rank() > 0:  # rank 0's streams were saved; the others start new ones from here
             model._seed = distributed.rank_seed(model.config.seed) + model.epoch
             model.rng = np.random.default_rng(model._seed)

@@ -233,14 +233,18 @@ class DiffusionPolicy(nn.Module):
 
     def forward(self, x_t: torch.Tensor, t: torch.Tensor, floor: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """mu_theta and sigma_t of pi(x_{t-1} | x_t, t, floor); shapes (B, N, F) (sigma broadcast)."""
+        out = self._step(x_t, t, floor)
+        return out.mean, out.std.expand_as(x_t)
+
+    def _step(self, x_t, t, floor):
+        """The DDIM step's Gaussian and x0_hat (a ``DDIMStepOutput`` whose sample is not drawn)."""
         t = torch.as_tensor(t, device=x_t.device).long().reshape(-1)
         if t.numel() == 1:
             t = t.expand(x_t.shape[0])
         eps = self.eps(x_t, t, floor)
         t_prev = t - self.schedule.num_train_timesteps // self.num_steps
         # passing prev_sample makes step() compute the Gaussian without drawing from it
-        out = self.schedule.step(eps, t, x_t, eta=self.eta, prev_sample=x_t, prev_timestep=t_prev)
-        return out.mean, out.std.expand_as(x_t)
+        return self.schedule.step(eps, t, x_t, eta=self.eta, prev_sample=x_t, prev_timestep=t_prev)
 
     def log_prob(self, x_t, t, floor, x_prev) -> torch.Tensor:
         """log pi(x_prev | x_t, t, floor), mean-reduced per scene: (B,)."""
@@ -248,14 +252,18 @@ class DiffusionPolicy(nn.Module):
         return gaussian_log_prob(x_prev, mean, std)
 
     @torch.no_grad()
-    def act(self, x_t, t, floor, generator: torch.Generator | None = None, deterministic: bool = False):
-        """Sample x_{t-1} (the mean when ``deterministic``) and its log-probability."""
-        mean, std = self(x_t, t, floor)
+    def act(self, x_t, t, floor, generator: torch.Generator | None = None, deterministic: bool = False,
+            return_x0: bool = False):
+        """Sample x_{t-1} (the mean when ``deterministic``) and its log-probability (and, with ``return_x0``,
+        the clean scene x0_hat the step predicts)."""
+        out = self._step(x_t, t, floor)
+        mean, std = out.mean, out.std.expand_as(x_t)
         if deterministic or self.eta == 0:
             x_prev = mean
         else:
             x_prev = mean + std * standard_normal(mean.shape, generator, mean.device, mean.dtype)
-        return x_prev, gaussian_log_prob(x_prev, mean, std)  # std is already floored at MIN_STD
+        log_prob = gaussian_log_prob(x_prev, mean, std)  # std is already floored at MIN_STD
+        return (x_prev, log_prob, out.pred_original_sample) if return_x0 else (x_prev, log_prob)
 
     @torch.no_grad()
     def sample(self, floors: Sequence[FloorPlan], generator: torch.Generator | None = None,
