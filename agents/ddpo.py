@@ -22,6 +22,8 @@ import numpy as np
 import torch
 from tensordict import TensorDict
 
+from iarcs_env.env import evaluate_reward
+
 from . import distributed
 from .callbacks import HIGHER_IS_BETTER, LOWER_IS_BETTER, as_callback, render_grid_tensor
 from .policy import DiffusionPolicy
@@ -96,6 +98,24 @@ def content_features(scene) -> torch.Tensor:
     return torch.cat([classes.sum(1), count, area], 1).double().cpu()
 
 
+def x0_baseline_fit(rewards: torch.Tensor, values: torch.Tensor, groups: list[torch.Tensor]):
+    """The ``x0_baseline`` fit. ``rewards`` (B,) r(x_0); ``values`` (B, S) r(x0_hat(x_t)) of each step;
+    ``groups`` boolean masks whose means are removed first (floor plans). Returns the residuals
+    r - beta_t v_t (B, S), beta (S,) and the share of the rewards' within-group variance each step's
+    baseline explains (S,)."""
+    r, v = rewards.double(), values.double()
+    rd, vd = r.clone(), v.clone()
+    for m in groups:
+        rd[m], vd[m] = r[m] - r[m].mean(), v[m] - v[m].mean(0)
+    beta = (vd * rd[:, None]).sum(0) / (vd**2).sum(0).clamp(min=1e-12)
+    residual = rd[:, None] - beta * vd
+    return residual, beta, 1 - residual.var(0) / rd.var().clamp(min=1e-12)
+
+
+def _per_step_standardised(values: torch.Tensor) -> torch.Tensor:
+    return values / (values.std(0, unbiased=False) + 1e-8)
+
+
 class DDPO:
     """DDPO-IS: importance-sampled, clipped policy gradient on the terminal reward.
 
@@ -128,9 +148,9 @@ class DDPO:
         if self.venv.stats.to_json() != policy.prior.stats.to_json():
             raise ValueError("the env scales features with other dataset statistics than the prior; "
                              "create the env with stats=prior.stats")
-        if cfg.x0_baseline and (cfg.per_term_advantages or cfg.content_baseline_epochs):
-            raise ValueError("x0_baseline replaces the per-scene advantage; it cannot be combined with "
-                             "per_term_advantages or content_baseline_epochs: set only one of them")
+        if cfg.x0_baseline and cfg.content_baseline_epochs:
+            raise ValueError("x0_baseline and content_baseline_epochs are two baselines for the same advantage: "
+                             "set only one of them")
         if cfg.per_term_advantages and not isinstance(getattr(self.venv.reward_fn, "weights", None), dict):
             raise ValueError("per_term_advantages needs a composite reward (rewards.composite.CompositeReward) whose "
                              "terms and weights it can standardise")
@@ -194,16 +214,14 @@ class DDPO:
             obs, reward, terminated, _, info = self.env.step(action.numpy())
         if not terminated.all():
             raise RuntimeError("the environment did not terminate after num_steps steps")
-        if cfg.x0_baseline:  # r(x0_hat(x_t)) of every step, on the episode's floors (not yet reset)
-            from iarcs_env.env import evaluate_reward
-
-            values = [evaluate_reward(venv.reward_fn, venv.decode(s["x0_hat"].numpy()))[0] for s in steps]
-            td_values = torch.as_tensor(np.stack(values, 1), dtype=torch.float32)
-        for s in steps:
-            del s["x0_hat"]
+        predicted = [s.pop("x0_hat") for s in steps]
         td = TensorDict({k: torch.stack([s[k] for s in steps], 1) for k in steps[0]}, batch_size=[venv.num_envs, venv.num_steps])
-        if cfg.x0_baseline:
-            td["reward_x0_hat"] = td_values
+        if cfg.x0_baseline:  # r(x0_hat(x_t)) of every step (and its terms), on the episode's floors (not yet reset)
+            scored = [evaluate_reward(venv.reward_fn, venv.decode(x.numpy())) for x in predicted]
+            td["reward_x0_hat"] = torch.as_tensor(np.stack([total for total, _ in scored], 1), dtype=torch.float32)
+            if scored[0][1]:
+                td["terms_x0_hat"] = torch.as_tensor(np.stack([np.stack([np.asarray(v) for v in terms.values()], -1)
+                                                               for _, terms in scored], 1), dtype=torch.float32)
         td["reward"] = torch.as_tensor(reward, dtype=torch.float32)[:, None].expand(-1, venv.num_steps)
         td["floor_index"] = torch.as_tensor(floor_idx)[:, None].expand(-1, venv.num_steps)
         self._last_terms = info.get("terms", {})
@@ -218,28 +236,29 @@ class DDPO:
 
     def compute_advantages(self, rewards: torch.Tensor, floor_index: torch.Tensor,
                            terms: torch.Tensor | None = None, content: torch.Tensor | None = None,
-                           x0_values: torch.Tensor | None = None) -> torch.Tensor:
+                           x0_values: torch.Tensor | None = None, x0_terms: torch.Tensor | None = None) -> torch.Tensor:
         """A = (r - mean) / (std + 1e-8) per floor plan (or per batch), clipped to +-adv_clip_max.
 
         With ``per_term_advantages`` and the composite's per-term values ``terms`` (B, K), r is replaced by
         ``sum_k w_k z_k`` where z_k is term k standardised the same way. With ``content_baseline_epochs`` and
         the scenes' :func:`content_features` ``content`` (B, F), r is replaced by its residual
         r - content @ beta (:meth:`_content_residual`). With ``x0_baseline`` and the rewards of each step's
-        x0_hat ``x0_values`` (B, S) the result is per step, (B, S) (:meth:`_x0_residual`). Under ``torchrun``
-        the statistics are those of every rank's scenes; the result is this rank's part."""
+        x0_hat ``x0_values`` (B, S) (and their terms ``x0_terms`` (B, S, K) for ``per_term_advantages``) the
+        result is per step, (B, S) (:meth:`_x0_advantages`). Under ``torchrun`` the statistics are those of
+        every rank's scenes; the result is this rank's part."""
         rewards, floor_index = distributed.all_gather(rewards), distributed.all_gather(floor_index)
-        if self.config.x0_baseline and x0_values is not None:
-            c = self.config.adv_clip_max
-            residual = self._x0_residual(rewards, floor_index, distributed.all_gather(x0_values))
-            return distributed.local_part(residual.clamp(-c, c).float())
         terms = distributed.all_gather(terms) if terms is not None else None
+        c = self.config.adv_clip_max
+        if self.config.x0_baseline and x0_values is not None:
+            x0_terms = distributed.all_gather(x0_terms) if x0_terms is not None else None
+            advantage = self._x0_advantages(rewards, floor_index, distributed.all_gather(x0_values), terms, x0_terms)
+            return distributed.local_part(advantage.clamp(-c, c).float())
         if self.config.per_term_advantages and terms is not None:
             weights = torch.tensor(list(self.venv.reward_fn.weights.values()), dtype=torch.float64)
             z = torch.stack([self._standardise(terms[:, k], floor_index) for k in range(terms.shape[1])], 1)
             rewards = (z * weights).sum(1)
         if self.config.content_baseline_epochs and content is not None:
             rewards = self._content_residual(rewards, floor_index, distributed.all_gather(content))
-        c = self.config.adv_clip_max
         return distributed.local_part(self._standardise(rewards, floor_index).clamp(-c, c).float())
 
     def _groups(self, floor_index: torch.Tensor) -> list[torch.Tensor]:
@@ -257,17 +276,19 @@ class DDPO:
             out[m] = (sel - sel.mean()) / (std + 1e-8)
         return out
 
-    def _x0_residual(self, rewards: torch.Tensor, floor_index: torch.Tensor, values: torch.Tensor) -> torch.Tensor:
-        """(B, S) standardised r - beta_t r(x0_hat(x_t)) (``x0_baseline``). Logs ``x0_baseline_r2``, the share
-        of the within-group reward variance the baseline explains, averaged over the steps."""
-        r, v = rewards.double(), values.double()
-        rd, vd = r.clone(), v.clone()
-        for m in self._groups(floor_index):
-            rd[m], vd[m] = r[m] - r[m].mean(), v[m] - v[m].mean(0)
-        beta = (vd * rd[:, None]).sum(0) / (vd**2).sum(0).clamp(min=1e-12)
-        residual = rd[:, None] - beta * vd
-        self._x0_r2 = float((1 - residual.var(0) / rd.var().clamp(min=1e-12)).mean())
-        return residual / (residual.std(0, unbiased=False) + 1e-8)
+    def _x0_advantages(self, rewards, floor_index, values, terms=None, term_values=None) -> torch.Tensor:
+        """(B, S) advantages of ``x0_baseline``: r - beta_t r(x0_hat(x_t)) standardised per step; with
+        ``per_term_advantages``, sum_k w_k z_k,t with z_k,t term k's residual standardised per step, standardised
+        again. Logs ``x0_baseline_r2``, the share of the total reward's within-group variance the baseline
+        explains, averaged over the steps."""
+        groups = self._groups(floor_index)
+        residual, _, r2 = x0_baseline_fit(rewards, values, groups)
+        self._x0_r2 = float(r2.mean())
+        if self.config.per_term_advantages and terms is not None and term_values is not None:
+            weights = self.venv.reward_fn.weights.values()
+            residual = sum(w * _per_step_standardised(x0_baseline_fit(terms[:, k], term_values[..., k], groups)[0])
+                           for k, w in enumerate(weights))
+        return _per_step_standardised(residual)
 
     def _content_residual(self, rewards: torch.Tensor, floor_index: torch.Tensor, content: torch.Tensor,
                           ridge: float = 1.0) -> torch.Tensor:
@@ -362,8 +383,9 @@ class DDPO:
             rewards = rollout["reward"][:, 0]
             terms = rollout["terms"][:, 0] if "terms" in rollout.keys() else None
             content = rollout["content"][:, 0] if "content" in rollout.keys() else None
-            x0_values = rollout.get("reward_x0_hat", None)
-            advantage = self.compute_advantages(rewards, rollout["floor_index"][:, 0], terms, content, x0_values)
+            x0_values, x0_terms = rollout.get("reward_x0_hat", None), rollout.get("terms_x0_hat", None)
+            advantage = self.compute_advantages(rewards, rollout["floor_index"][:, 0], terms, content, x0_values,
+                                                x0_terms)
             if advantage.ndim == 1:  # one advantage per scene, shared by its steps
                 advantage = advantage[:, None].expand(-1, rollout.batch_size[1])
             rollout["advantage"] = advantage[..., None].clone()
@@ -432,7 +454,6 @@ class DDPO:
         and ``mean_ground_objects`` without lamps: a policy that empties the rooms, or swaps furniture for
         pendant lamps, shows there first) and reward, logged to TensorBoard.
         ``scene_metrics`` ``{name: f(SceneBatch) -> float}`` adds metrics (e.g. a task's success rate)."""
-        from iarcs_env.env import evaluate_reward
         from iarcs_env.metrics import evaluate_layouts
         from iarcs_env.render import render_layout
 

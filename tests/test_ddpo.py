@@ -161,7 +161,26 @@ def test_x0_baseline_rollouts_score_every_steps_prediction_and_learn():
     model.learn(8 * STEPS * 2)
     assert any(not torch.equal(w0[k], w) for k, w in adapter_weights(model).items())
     with pytest.raises(ValueError, match="x0_baseline"):
-        make_model(x0_baseline=True, per_term_advantages=True)
+        make_model(x0_baseline=True, content_baseline_epochs=4)
+
+
+def test_x0_baseline_with_per_term_advantages_gives_every_term_its_weights_share():
+    """Two terms decided at step 1, one with 1000 times the other's spread: each step-1 advantage follows
+    the sum of the standardised terms, not the big one alone."""
+    model = make_model(x0_baseline=True, per_term_advantages=True, per_floor_advantages=False)
+    model.venv.reward_fn.weights = {"universal": 1.0, "task": 1.0}
+    g = torch.Generator().manual_seed(2)
+    big, small = 1000 * torch.randn(64, generator=g), torch.randn(64, generator=g)
+    late_big, late_small = 1000 * torch.randn(64, generator=g), torch.randn(64, generator=g)
+    terms = torch.stack([big + late_big, small + late_small], 1)
+    term_values = torch.stack([torch.zeros(64, 2), torch.stack([big, small], 1)], 1)  # (B, S=2, K=2)
+    adv = model.compute_advantages(terms.sum(1), torch.zeros(64, dtype=torch.long), terms,
+                                   x0_values=term_values.sum(-1), x0_terms=term_values)
+    corr = lambda u, v: torch.corrcoef(torch.stack([u.double(), v.double()]))[0, 1]  # noqa: E731
+    z = lambda v: (v - v.mean()) / v.std(unbiased=False)  # noqa: E731
+    assert corr(adv[:, 1], z(late_big) + z(late_small)) > 0.97  # step 1: what came after it, both terms
+    assert corr(adv[:, 0], z(big + late_big) + z(small + late_small)) > 0.97  # step 0: everything
+    assert 0.6 < corr(adv[:, 1], late_small) < 0.8  # about 1/sqrt(2): the small term's half of the say
 
 
 def test_reward_spread_measures_the_spread_within_floor_groups():
