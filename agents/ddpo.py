@@ -61,12 +61,6 @@ class DDPOConfig:
     """Standardise each term of a composite reward before the weighted sum, so that every term carries its
     weight's share of the signal whatever the spread of its values (e.g. a task reward in [0, 1] next to
     universal rewards that vary much more)."""
-    content_baseline_epochs: int = 0
-    """0: off. Otherwise the part of the reward that a scene's content explains (its class counts, object
-    count and ground footprint area: :func:`content_features`) is subtracted before the advantages are
-    normalised, fitted by ridge regression on the last ``content_baseline_epochs`` epochs' scenes. The
-    policy gradient then has no say on which objects a scene draws, only on how they are placed: the
-    universal rewards are met by repairing placement, not by swapping furniture for pendant lamps."""
     x0_baseline: bool = False
     """Per-step advantages with the reward of the clean scene the policy predicts at each step as a baseline:
     A_t = r(x_0) - beta_t r(x0_hat(x_t)), beta_t the least-squares fit over the batch (deviations from each
@@ -86,16 +80,6 @@ class DDPOConfig:
         if unknown:
             raise ValueError(f"unknown DDPO hyper-parameter(s) {', '.join(unknown)}; known: {', '.join(sorted(known))}")
         return cls(**values)
-
-
-def content_features(scene) -> torch.Tensor:
-    """(B, F) float64 description of what a :class:`~iarcs_env.scene.SceneBatch` holds, not where: objects of
-    each class, a one-hot of the object count, and the ground objects' total footprint area (m^2)."""
-    k = len(scene.spec.classes)
-    classes = torch.nn.functional.one_hot(scene.labels.clamp(min=0), k + 1)[..., :k] * scene.mask[..., None]
-    count = torch.nn.functional.one_hot(scene.mask.sum(1).long(), scene.num_slots + 1)
-    area = (4 * scene.half_sizes[..., 0] * scene.half_sizes[..., 2] * scene.ground_mask).sum(1, keepdim=True)
-    return torch.cat([classes.sum(1), count, area], 1).double().cpu()
 
 
 def x0_baseline_fit(rewards: torch.Tensor, values: torch.Tensor, groups: list[torch.Tensor]):
@@ -148,9 +132,6 @@ class DDPO:
         if self.venv.stats.to_json() != policy.prior.stats.to_json():
             raise ValueError("the env scales features with other dataset statistics than the prior; "
                              "create the env with stats=prior.stats")
-        if cfg.x0_baseline and cfg.content_baseline_epochs:
-            raise ValueError("x0_baseline and content_baseline_epochs are two baselines for the same advantage: "
-                             "set only one of them")
         if cfg.per_term_advantages and not isinstance(getattr(self.venv.reward_fn, "weights", None), dict):
             raise ValueError("per_term_advantages needs a composite reward (rewards.composite.CompositeReward) whose "
                              "terms and weights it can standardise")
@@ -164,7 +145,6 @@ class DDPO:
         self.epoch = 0
         self.num_timesteps = 0
         self._env_seeded = False
-        self._content_buffer: list[tuple[torch.Tensor, torch.Tensor]] = []  # (features, reward) per epoch, demeaned
         self.tensorboard_log = Path(tensorboard_log) if tensorboard_log and distributed.is_main() else None
         distributed.broadcast_parameters(policy.trainable_parameters())  # every rank starts from rank 0's adapter
         self._writer = None
@@ -229,23 +209,19 @@ class DDPO:
             terms = np.stack([np.asarray(v, dtype=np.float32) for v in self._last_terms.values()], -1)
             td["terms"] = torch.from_numpy(terms)[:, None].expand(-1, venv.num_steps, -1)
         self._last_scene = info.get("scene")
-        if cfg.content_baseline_epochs and self._last_scene is not None:
-            td["content"] = content_features(self._last_scene).float()[:, None].expand(-1, venv.num_steps, -1)
         self.num_timesteps += venv.num_envs * venv.num_steps
         return td
 
     def compute_advantages(self, rewards: torch.Tensor, floor_index: torch.Tensor,
-                           terms: torch.Tensor | None = None, content: torch.Tensor | None = None,
-                           x0_values: torch.Tensor | None = None, x0_terms: torch.Tensor | None = None) -> torch.Tensor:
+                           terms: torch.Tensor | None = None, x0_values: torch.Tensor | None = None,
+                           x0_terms: torch.Tensor | None = None) -> torch.Tensor:
         """A = (r - mean) / (std + 1e-8) per floor plan (or per batch), clipped to +-adv_clip_max.
 
         With ``per_term_advantages`` and the composite's per-term values ``terms`` (B, K), r is replaced by
-        ``sum_k w_k z_k`` where z_k is term k standardised the same way. With ``content_baseline_epochs`` and
-        the scenes' :func:`content_features` ``content`` (B, F), r is replaced by its residual
-        r - content @ beta (:meth:`_content_residual`). With ``x0_baseline`` and the rewards of each step's
-        x0_hat ``x0_values`` (B, S) (and their terms ``x0_terms`` (B, S, K) for ``per_term_advantages``) the
-        result is per step, (B, S) (:meth:`_x0_advantages`). Under ``torchrun`` the statistics are those of
-        every rank's scenes; the result is this rank's part."""
+        ``sum_k w_k z_k`` where z_k is term k standardised the same way. With ``x0_baseline`` and the rewards
+        of each step's x0_hat ``x0_values`` (B, S) (and their terms ``x0_terms`` (B, S, K) for
+        ``per_term_advantages``) the result is per step, (B, S) (:meth:`_x0_advantages`). Under ``torchrun``
+        the statistics are those of every rank's scenes; the result is this rank's part."""
         rewards, floor_index = distributed.all_gather(rewards), distributed.all_gather(floor_index)
         terms = distributed.all_gather(terms) if terms is not None else None
         c = self.config.adv_clip_max
@@ -257,8 +233,6 @@ class DDPO:
             weights = torch.tensor(list(self.venv.reward_fn.weights.values()), dtype=torch.float64)
             z = torch.stack([self._standardise(terms[:, k], floor_index) for k in range(terms.shape[1])], 1)
             rewards = (z * weights).sum(1)
-        if self.config.content_baseline_epochs and content is not None:
-            rewards = self._content_residual(rewards, floor_index, distributed.all_gather(content))
         return distributed.local_part(self._standardise(rewards, floor_index).clamp(-c, c).float())
 
     def _groups(self, floor_index: torch.Tensor) -> list[torch.Tensor]:
@@ -289,23 +263,6 @@ class DDPO:
             residual = sum(w * _per_step_standardised(x0_baseline_fit(terms[:, k], term_values[..., k], groups)[0])
                            for k, w in enumerate(weights))
         return _per_step_standardised(residual)
-
-    def _content_residual(self, rewards: torch.Tensor, floor_index: torch.Tensor, content: torch.Tensor,
-                          ridge: float = 1.0) -> torch.Tensor:
-        """r - X beta: beta fits the rewards' deviations from their group means on the features' deviations
-        (ridge ``ridge``) over this epoch's and the previous ``content_baseline_epochs - 1`` epochs' scenes.
-        Logs ``content_r2``, the share of this epoch's within-group reward variance the content explains."""
-        r, x = rewards.double(), content.double()
-        rd, xd = r.clone(), x.clone()
-        for m in self._groups(floor_index):
-            rd[m], xd[m] = r[m] - r[m].mean(), x[m] - x[m].mean(0)
-        self._content_buffer = (self._content_buffer + [(xd, rd)])[-self.config.content_baseline_epochs:]
-        bx = torch.cat([b[0] for b in self._content_buffer])
-        by = torch.cat([b[1] for b in self._content_buffer])
-        beta = torch.linalg.solve(bx.T @ bx + ridge * torch.eye(bx.shape[1], dtype=bx.dtype), bx.T @ by)
-        explained = xd @ beta
-        self._content_r2 = float(1 - (rd - explained).var() / rd.var().clamp(min=1e-12))
-        return r - x @ beta
 
     # --- updates ---------------------------------------------------------------------------------------
     def train(self, rollout: TensorDict) -> dict[str, float]:
@@ -382,10 +339,8 @@ class DDPO:
             rollout = torch.cat(rollouts, 0)
             rewards = rollout["reward"][:, 0]
             terms = rollout["terms"][:, 0] if "terms" in rollout.keys() else None
-            content = rollout["content"][:, 0] if "content" in rollout.keys() else None
             x0_values, x0_terms = rollout.get("reward_x0_hat", None), rollout.get("terms_x0_hat", None)
-            advantage = self.compute_advantages(rewards, rollout["floor_index"][:, 0], terms, content, x0_values,
-                                                x0_terms)
+            advantage = self.compute_advantages(rewards, rollout["floor_index"][:, 0], terms, x0_values, x0_terms)
             if advantage.ndim == 1:  # one advantage per scene, shared by its steps
                 advantage = advantage[:, None].expand(-1, rollout.batch_size[1])
             rollout["advantage"] = advantage[..., None].clone()
@@ -396,8 +351,6 @@ class DDPO:
                 means = torch.tensor([[np.mean(v) for v in self._last_terms.values()]], dtype=torch.float64)
                 stats.update({f"reward_{k}": float(m)
                               for k, m in zip(self._last_terms, distributed.all_gather(means).mean(0))})
-            if content is not None:
-                stats["content_r2"] = self._content_r2
             if x0_values is not None:
                 stats["x0_baseline_r2"] = self._x0_r2
             cb.on_rollout_end(stats)
@@ -518,7 +471,7 @@ class DDPO:
                  "num_timesteps": self.num_timesteps, "adapter": self.policy.adapter,
                  "optimizer": self.optimizer.state_dict(), "rng": self.rng.bit_generator.state,
                  "generator": self.generator.get_state(), "env_rng": self.venv.np_random.bit_generator.state,
-                 "env_seeded": self._env_seeded, "content_buffer": self._content_buffer}
+                 "env_seeded": self._env_seeded}
         torch.save(state, tmp / "trainer_state.pt")
         (tmp / "trainer.json").write_text(json.dumps({k: state[k] for k in ("algorithm", "config", "epoch",
                                                                             "num_timesteps", "adapter")}, indent=1))
@@ -558,7 +511,6 @@ class DDPO:
         model.generator.set_state(state["generator"])
         model.venv.np_random.bit_generator.state = state["env_rng"]
         model._env_seeded = state["env_seeded"]
-        model._content_buffer = state.get("content_buffer", [])
         if distributed.rank() > 0:  # rank 0's streams were saved; the others start new ones from here
             model._seed = distributed.rank_seed(model.config.seed) + model.epoch
             model.rng = np.random.default_rng(model._seed)

@@ -47,7 +47,7 @@ def main() -> None:
         cfg = load_train_config(args.config, out=tmp)
         task = _setup_task(cfg, Path(tmp), None, log=lambda *a: None) if cfg.task else None
         if args.x0_steps:
-            cfg.ddpo = {**cfg.ddpo, "x0_baseline": True, "per_term_advantages": False, "content_baseline_epochs": 0}
+            cfg.ddpo = {**cfg.ddpo, "x0_baseline": True}
         algo, _, env = build(cfg, **({} if task is None else task["build"]))
         try:
             rollouts = [algo.collect_rollouts() for _ in range(args.batches)]
