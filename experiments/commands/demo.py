@@ -1,4 +1,4 @@
-"""``iarcs demo``: the first thing a new user sees work, offline, on a CPU, in about 7 minutes.
+"""``iarcs demo``: the first thing a new user sees work, offline, on a CPU, in about 9 minutes.
 
 It takes the shipped small bedroom prior and its shipped stage-1 adapter (DDPO on the universal rewards),
 has the offline planner write a reward program for one paper task, runs a short stage 2 (DDPO from the
@@ -18,11 +18,11 @@ TASKS_DIR = Path(__file__).resolve().parents[1]
 
 def register(sub) -> None:
     p = sub.add_parser("demo", help="stage 2 for one task with the offline planner, from the shipped prior and "
-                                    "stage-1 adapter, then a report (about 7 minutes on 2 cores)")
+                                    "stage-1 adapter, then a report (about 9 minutes on 2 cores)")
     p.add_argument("--out", default="out/demo", help="output folder (default out/demo)")
     p.add_argument("--task", default="reach_1m",
                    help="paper task: reach_1m (default), tv_from_bed, study_zone, two_nightstands, wheelchair")
-    p.add_argument("--epochs", type=int, default=100, help="stage-2 epochs (default 100, about 6 minutes)")
+    p.add_argument("--epochs", type=int, default=100, help="stage-2 epochs (default 100, about 8 minutes)")
     p.add_argument("--num-scenes", type=int, default=64, help="scenes per row of the report (default 64)")
     p.add_argument("--seed", type=int, default=0)
     p.set_defaults(func=cmd_demo)
