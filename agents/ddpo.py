@@ -235,6 +235,16 @@ class DDPO:
             rewards = (z * weights).sum(1)
         return distributed.local_part(self._standardise(rewards, floor_index).clamp(-c, c).float())
 
+    def set_advantages(self, rollout: TensorDict) -> None:
+        """Write ``rollout["advantage"]`` [B, S, 1] from the rollout's rewards (:meth:`compute_advantages`): one
+        per scene shared by its steps, or one per step with ``x0_baseline``."""
+        terms = rollout["terms"][:, 0] if "terms" in rollout.keys() else None
+        advantage = self.compute_advantages(rollout["reward"][:, 0], rollout["floor_index"][:, 0], terms,
+                                            rollout.get("reward_x0_hat", None), rollout.get("terms_x0_hat", None))
+        if advantage.ndim == 1:
+            advantage = advantage[:, None].expand(-1, rollout.batch_size[1])
+        rollout["advantage"] = advantage[..., None].clone()
+
     def _groups(self, floor_index: torch.Tensor) -> list[torch.Tensor]:
         """Boolean masks of the advantage groups: one per floor plan, or the whole batch."""
         if not self.config.per_floor_advantages:
@@ -338,12 +348,7 @@ class DDPO:
             rollouts = [self.collect_rollouts() for _ in range(self.config.num_batches_per_epoch)]
             rollout = torch.cat(rollouts, 0)
             rewards = rollout["reward"][:, 0]
-            terms = rollout["terms"][:, 0] if "terms" in rollout.keys() else None
-            x0_values, x0_terms = rollout.get("reward_x0_hat", None), rollout.get("terms_x0_hat", None)
-            advantage = self.compute_advantages(rewards, rollout["floor_index"][:, 0], terms, x0_values, x0_terms)
-            if advantage.ndim == 1:  # one advantage per scene, shared by its steps
-                advantage = advantage[:, None].expand(-1, rollout.batch_size[1])
-            rollout["advantage"] = advantage[..., None].clone()
+            self.set_advantages(rollout)
             t1 = time.perf_counter()
             everyone = distributed.all_gather(rewards)  # the statistics of every rank's scenes
             stats = {"reward_mean": float(everyone.mean()), "reward_std": float(everyone.std())}
@@ -351,7 +356,7 @@ class DDPO:
                 means = torch.tensor([[np.mean(v) for v in self._last_terms.values()]], dtype=torch.float64)
                 stats.update({f"reward_{k}": float(m)
                               for k, m in zip(self._last_terms, distributed.all_gather(means).mean(0))})
-            if x0_values is not None:
+            if "reward_x0_hat" in rollout.keys():
                 stats["x0_baseline_r2"] = self._x0_r2
             cb.on_rollout_end(stats)
             stats.update(self.train(rollout))

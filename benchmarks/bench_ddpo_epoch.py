@@ -56,9 +56,7 @@ def measure(preset: str, scenes: int, minibatch: int, steps: int = 20, device: s
     t1 = time.perf_counter()
     reward(algo._last_scene)
     t_reward = time.perf_counter() - t1
-    advantage = algo.compute_advantages(rollout["reward"][:, 0], rollout["floor_index"][:, 0],
-                                        x0_values=rollout.get("reward_x0_hat", None))
-    rollout["advantage"] = (advantage if advantage.ndim == 2 else advantage[:, None].expand(-1, steps))[..., None].clone()
+    algo.set_advantages(rollout)
     t2 = time.perf_counter()
     algo.train(rollout)
     t_update = time.perf_counter() - t2

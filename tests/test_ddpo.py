@@ -161,8 +161,7 @@ def test_updates_move_the_policy_towards_high_advantage_actions(algo):
     above average and less on the others: sum_i A_i (log pi_new - log pi_old)(a_i | s_i) > 0.""" 
     model = make_model(algo, learning_rate=3e-3, minibatch_size=8, num_inner_epochs=4)
     rollout = model.collect_rollouts()
-    rollout["advantage"] = model.compute_advantages(rollout["reward"][:, 0], rollout["floor_index"][:, 0])[:, None, None] \
-        .expand(-1, STEPS, 1).clone()
+    model.set_advantages(rollout)
     steps = model.stochastic_steps()
     assert steps.tolist() == list(range(STEPS - 1))  # the deterministic step onto x_0 is not trained
     flat = rollout[:, steps].reshape(-1)
