@@ -22,7 +22,6 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))  # the repository's packages (never `import benchmarks`: torchrl ships one)
 
-import numpy as np  # noqa: E402
 import torch  # noqa: E402
 
 from iarcs_env import geometry as geo  # noqa: E402
