@@ -96,6 +96,11 @@ def x0_baseline_fit(rewards: torch.Tensor, values: torch.Tensor, groups: list[to
     return residual, beta, 1 - residual.var(0) / rd.var().clamp(min=1e-12)
 
 
+def _stack_terms(terms: dict) -> torch.Tensor:
+    """(B, K) float32 tensor of a composite reward's per-term values ``{name: (B,)}``, in the terms' order."""
+    return torch.from_numpy(np.stack([np.asarray(v, dtype=np.float32) for v in terms.values()], -1))
+
+
 def _per_step_standardised(values: torch.Tensor) -> torch.Tensor:
     return values / (values.std(0, unbiased=False) + 1e-8)
 
@@ -181,33 +186,30 @@ class DDPO:
         seed = None if self._env_seeded else self._seed
         self._env_seeded = True
         obs, _ = self.env.reset(seed=seed, options={"floor_indices": floor_idx})
-        steps = []
+        steps, predicted = [], []  # predicted: x0_hat(x_t) of each step, scored only with x0_baseline
         on = self.device  # rollouts are stored on the CPU; the policy runs where its weights are
         for _ in range(venv.num_steps):
             x_t = torch.from_numpy(obs["x_t"])
             t = torch.from_numpy(obs["t"])
             floor = torch.from_numpy(obs["floor"])
-            action, log_prob, x0_hat = (v.cpu() for v in self.policy.act(x_t.to(on), t.to(on), floor.to(on),
-                                                                         generator=self.generator, return_x0=True))
-            steps.append({"x_t": x_t, "t": t, "floor": floor, "action": action, "sample_log_prob": log_prob,
-                          "x0_hat": x0_hat})
+            action, log_prob, *x0_hat = (v.cpu() for v in self.policy.act(
+                x_t.to(on), t.to(on), floor.to(on), generator=self.generator, return_x0=cfg.x0_baseline))
+            steps.append({"x_t": x_t, "t": t, "floor": floor, "action": action, "sample_log_prob": log_prob})
+            predicted += x0_hat
             obs, reward, terminated, _, info = self.env.step(action.numpy())
         if not terminated.all():
             raise RuntimeError("the environment did not terminate after num_steps steps")
-        predicted = [s.pop("x0_hat") for s in steps]
         td = TensorDict({k: torch.stack([s[k] for s in steps], 1) for k in steps[0]}, batch_size=[venv.num_envs, venv.num_steps])
-        if cfg.x0_baseline:  # r(x0_hat(x_t)) of every step (and its terms), on the episode's floors (not yet reset)
-            scored = [evaluate_reward(venv.reward_fn, venv.decode(x.numpy())) for x in predicted]
-            td["reward_x0_hat"] = torch.as_tensor(np.stack([total for total, _ in scored], 1), dtype=torch.float32)
-            if scored[0][1]:
-                td["terms_x0_hat"] = torch.as_tensor(np.stack([np.stack([np.asarray(v) for v in terms.values()], -1)
-                                                               for _, terms in scored], 1), dtype=torch.float32)
         td["reward"] = torch.as_tensor(reward, dtype=torch.float32)[:, None].expand(-1, venv.num_steps)
         td["floor_index"] = torch.as_tensor(floor_idx)[:, None].expand(-1, venv.num_steps)
         self._last_terms = info.get("terms", {})
         if self._last_terms:
-            terms = np.stack([np.asarray(v, dtype=np.float32) for v in self._last_terms.values()], -1)
-            td["terms"] = torch.from_numpy(terms)[:, None].expand(-1, venv.num_steps, -1)
+            td["terms"] = _stack_terms(self._last_terms)[:, None].expand(-1, venv.num_steps, -1)
+        if predicted:  # r(x0_hat(x_t)) of every step (and its terms), on the episode's floors (not yet reset)
+            scored = [evaluate_reward(venv.reward_fn, venv.decode(x.numpy())) for x in predicted]
+            td["reward_x0_hat"] = torch.as_tensor(np.stack([total for total, _ in scored], 1), dtype=torch.float32)
+            if self._last_terms:
+                td["terms_x0_hat"] = torch.stack([_stack_terms(terms) for _, terms in scored], 1)
         self._last_scene = info.get("scene")
         self.num_timesteps += venv.num_envs * venv.num_steps
         return td
