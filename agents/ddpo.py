@@ -67,6 +67,12 @@ class DDPOConfig:
     floor's mean), then standardised per step. The baseline is a function of the state x_t only, so the
     gradient stays unbiased; it takes out of step t's credit what the chain had already decided at x_t
     (which objects the room holds, once they have settled), which is most of a scene's reward spread."""
+    gae_lambda: float = 1.0
+    """With ``x0_baseline``: lambda < 1 takes r(x0_hat(x_t)) as the value V(x_t) of a critic-free GAE(lambda)
+    (gamma = 1, V(x_0) = r(x_0)): A_t = sum_k lambda^(k-t) delta_k with delta_k = V(x_{k-1}) - V(x_k), each
+    step's change of the predicted scene's reward, centred and standardised per step. lambda = 1 is the
+    fitted baseline above; lambda = 0 credits a step only with what it changed itself (least variance,
+    greedy: biased towards improvements the following steps keep)."""
     kl_coef: float = 0.0
     """Weight of a KL penalty to the policy the adapter starts from (its reference adapter, e.g. stage 1 for a
     partial stage-2 adapter; else the prior, adapters disabled), against diversity collapse and drift."""
@@ -94,6 +100,20 @@ def x0_baseline_fit(rewards: torch.Tensor, values: torch.Tensor, groups: list[to
     beta = (vd * rd[:, None]).sum(0) / (vd**2).sum(0).clamp(min=1e-12)
     residual = rd[:, None] - beta * vd
     return residual, beta, 1 - residual.var(0) / rd.var().clamp(min=1e-12)
+
+
+def gae_advantages(rewards: torch.Tensor, values: torch.Tensor, lam: float) -> torch.Tensor:
+    """GAE(lambda) with gamma = 1 over a chain (B, S): ``values`` V(x_t) of the state before each step, the
+    terminal reward ``rewards`` (B,) as the value after the last. Returns A (B, S), centred per step (a
+    constant per step is a baseline)."""
+    v = torch.cat([values.double(), rewards.double()[:, None]], 1)
+    delta = v[:, 1:] - v[:, :-1]
+    advantage = torch.zeros_like(delta)
+    running = torch.zeros_like(delta[:, 0])
+    for s in reversed(range(delta.shape[1])):
+        running = delta[:, s] + lam * running
+        advantage[:, s] = running
+    return advantage - advantage.mean(0)
 
 
 def _stack_terms(terms: dict) -> torch.Tensor:
@@ -137,6 +157,9 @@ class DDPO:
         if self.venv.stats.to_json() != policy.prior.stats.to_json():
             raise ValueError("the env scales features with other dataset statistics than the prior; "
                              "create the env with stats=prior.stats")
+        if not 0.0 <= cfg.gae_lambda <= 1.0 or (cfg.gae_lambda < 1 and not cfg.x0_baseline):
+            raise ValueError(f"gae_lambda must be in [0, 1] and needs x0_baseline: true (its values are the predicted "
+                             f"scenes' rewards); got gae_lambda={cfg.gae_lambda}, x0_baseline={cfg.x0_baseline}")
         if cfg.per_term_advantages and not isinstance(getattr(self.venv.reward_fn, "weights", None), dict):
             raise ValueError("per_term_advantages needs a composite reward (rewards.composite.CompositeReward) whose "
                              "terms and weights it can standardise")
@@ -270,11 +293,16 @@ class DDPO:
         groups = self._groups(floor_index)
         residual, _, r2 = x0_baseline_fit(rewards, values, groups)
         self._x0_r2 = float(r2.mean())
+        lam = self.config.gae_lambda
+
+        def advantage(r, v):
+            return x0_baseline_fit(r, v, groups)[0] if lam >= 1 else gae_advantages(r, v, lam)
+
         if self.config.per_term_advantages and terms is not None and term_values is not None:
             weights = self.venv.reward_fn.weights.values()
-            residual = sum(w * _per_step_standardised(x0_baseline_fit(terms[:, k], term_values[..., k], groups)[0])
-                           for k, w in enumerate(weights))
-        return _per_step_standardised(residual)
+            return _per_step_standardised(sum(w * _per_step_standardised(advantage(terms[:, k], term_values[..., k]))
+                                              for k, w in enumerate(weights)))
+        return _per_step_standardised(residual if lam >= 1 else advantage(rewards, values))
 
     # --- updates ---------------------------------------------------------------------------------------
     def train(self, rollout: TensorDict) -> dict[str, float]:

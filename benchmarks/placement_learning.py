@@ -8,7 +8,9 @@ objects a room holds and their sizes stay the prior's) and, as the only reward, 
 the ground objects. Both runs use the same seed and learning rate (1e-3); the only difference is the
 advantage: one per scene, normalised per floor plan (DDPO), or one per step against the reward of that
 step's predicted clean scene (x0_baseline). Prints the rollouts' mean reward per sixth of the run and the
-gain (last sixth minus first) of x0_baseline as a ratio to the plain run's, both measured in this run.
+gain (last sixth minus first) of each run as a ratio to the plain run's, all measured in this run.
+``--gae-lambda 0.5 0`` adds x0_baseline runs with ``ddpo.gae_lambda`` (per-step credit for each step's own
+change of the predicted scene's reward).
 """
 
 from __future__ import annotations
@@ -35,12 +37,12 @@ def mean_ground_x(scene) -> torch.Tensor:
     return (scene.translations[..., 0] * m).sum(1) / m.sum(1).clamp(min=1)
 
 
-def run(x0_baseline: bool, epochs: int) -> list[float]:
-    """The rollouts' mean reward of each epoch."""
+def run(options: dict, epochs: int) -> list[float]:
+    """The rollouts' mean reward of each epoch, with ``options`` added to the config's DDPO fields."""
     with tempfile.TemporaryDirectory() as tmp:
         cfg = load_train_config(CONFIG, out=tmp)
         cfg.reward, cfg.adapt = {}, ["position", "yaw"]
-        cfg.ddpo = {**cfg.ddpo, "learning_rate": 1e-3, "x0_baseline": x0_baseline}
+        cfg.ddpo = {**cfg.ddpo, "learning_rate": 1e-3, **options}
         algo, _, _ = build(cfg, task_reward=mean_ground_x)
         rewards = []
         for _ in range(epochs):
@@ -53,19 +55,24 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--epochs", type=int, default=60)
     ap.add_argument("--threads", type=int, default=1)
+    ap.add_argument("--gae-lambda", type=float, nargs="*", default=[],
+                    help="also run x0_baseline with each of these ddpo.gae_lambda values")
     ap.add_argument("--json", default="out/benchmarks/placement_learning.json")
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
     k = max(args.epochs // 6, 1)
+    runs = {"DDPO": {}, "x0_baseline": {"x0_baseline": True}}
+    runs.update({f"gae_lambda={lam:g}": {"x0_baseline": True, "gae_lambda": lam} for lam in args.gae_lambda})
     rows = {}
-    for name, x0 in (("DDPO", False), ("x0_baseline", True)):
-        r = run(x0, args.epochs)
+    for name, options in runs.items():
+        r = run(options, args.epochs)
         sixths = [float(np.mean(r[i:i + k])) for i in range(0, len(r) - k + 1, k)]
         rows[name] = {"per_epoch": r, "sixths": sixths, "gain": sixths[-1] - sixths[0]}
-        print(f"{name:12s} mean x (m) per sixth of {args.epochs} epochs: " + " ".join(f"{v:+.3f}" for v in sixths))
-    ratio = rows["x0_baseline"]["gain"] / rows["DDPO"]["gain"] if rows["DDPO"]["gain"] else float("inf")
-    print(f"gain over the run: DDPO {rows['DDPO']['gain']:+.3f} m, x0_baseline {rows['x0_baseline']['gain']:+.3f} m "
-          f"({ratio:.1f}x DDPO's)")
+        print(f"{name:16s} mean x (m) per sixth of {args.epochs} epochs: " + " ".join(f"{v:+.3f}" for v in sixths))
+    plain = rows["DDPO"]["gain"]
+    for name, row in rows.items():
+        ratio = row["gain"] / plain if plain else float("inf")
+        print(f"gain over the run: {name:16s} {row['gain']:+.3f} m ({ratio:.1f}x DDPO's)")
     Path(args.json).parent.mkdir(parents=True, exist_ok=True)
     Path(args.json).write_text(json.dumps(rows, indent=1))
 

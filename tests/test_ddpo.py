@@ -9,7 +9,7 @@ from tensordict import TensorDict
 import iarcs_env  # noqa: F401
 from conftest import load_benchmark, perturb_zero_init
 from agents.callbacks import CheckpointCallback, EvalCallback, StopTrainingOnRewardThreshold
-from agents.ddpo import DDPO, DDPOSF, get_algorithm
+from agents.ddpo import DDPO, DDPOSF, gae_advantages, get_algorithm
 from agents.denoiser import ScenePrior
 from agents.policy import DiffusionPolicy
 from iarcs_env.datasets.procedural import generate_layouts
@@ -131,8 +131,9 @@ def test_x0_baseline_rollouts_score_every_steps_prediction_and_learn():
 def test_x0_baseline_with_per_term_advantages_gives_every_term_its_weights_share():
     """Two terms decided at step 1, one with 1000 times the other's spread: each step-1 advantage follows
     the sum of the standardised terms, not the big one alone."""
-    model = make_model(x0_baseline=True, per_term_advantages=True, per_floor_advantages=False)
-    model.venv.reward_fn.weights = {"universal": 1.0, "task": 1.0}
+    model = make_model(x0_baseline=True, per_floor_advantages=False)
+    model.venv.reward_fn.weights = {"universal": 1.0, "task": 1.0}  # what a composite reward carries
+    model.config.per_term_advantages = True
     g = torch.Generator().manual_seed(2)
     big, small = 1000 * torch.randn(64, generator=g), torch.randn(64, generator=g)
     late_big, late_small = 1000 * torch.randn(64, generator=g), torch.randn(64, generator=g)
@@ -145,6 +146,29 @@ def test_x0_baseline_with_per_term_advantages_gives_every_term_its_weights_share
     assert corr(adv[:, 1], z(late_big) + z(late_small)) > 0.97  # step 1: what came after it, both terms
     assert corr(adv[:, 0], z(big + late_big) + z(small + late_small)) > 0.97  # step 0: everything
     assert 0.6 < corr(adv[:, 1], late_small) < 0.8  # about 1/sqrt(2): the small term's half of the say
+
+
+def test_gae_advantages_sum_each_steps_change_of_the_predicted_reward():
+    """Scene 0's predicted reward goes 1 -> 2 -> 3 (the terminal reward), scene 1's stays 0: the deltas are
+    (1, 1) and (0, 0); GAE(0.5) sums them back from the end (1 + 0.5 * 1, 1), then centres each step."""
+    rewards, values = torch.tensor([3.0, 0.0]), torch.tensor([[1.0, 2.0], [0.0, 0.0]])
+    torch.testing.assert_close(gae_advantages(rewards, values, 0.5).float(), torch.tensor([[0.75, 0.5], [-0.75, -0.5]]))
+    torch.testing.assert_close(gae_advantages(rewards, values, 1.0).float(),  # r - V(x_t)
+                               torch.tensor([[1.0, 0.5], [-1.0, -0.5]]))
+    torch.testing.assert_close(gae_advantages(rewards, values, 0.0).float(), torch.tensor([[0.5, 0.5], [-0.5, -0.5]]))
+
+
+def test_gae_lambda_zero_credits_a_step_only_with_its_own_change():
+    """r = a + b with a readable from step 1's x0_hat: with lambda = 0, step 0 is credited with a (what
+    happened between its state and the next) and step 1 with b alone."""
+    model = make_model(x0_baseline=True, gae_lambda=0.0, per_floor_advantages=False)
+    g = torch.Generator().manual_seed(1)
+    a, b, noise = (torch.randn(64, generator=g, dtype=torch.float64) for _ in range(3))
+    adv = model.compute_advantages(a + b, torch.zeros(64, dtype=torch.long), x0_values=torch.stack([0.01 * noise, a], 1))
+    corr = lambda u, v: torch.corrcoef(torch.stack([u.double(), v.double()]))[0, 1]  # noqa: E731
+    assert corr(adv[:, 0], a) > 0.99 and corr(adv[:, 1], b) > 0.99 and abs(corr(adv[:, 0], b)) < 0.3
+    with pytest.raises(ValueError, match="gae_lambda .* needs x0_baseline"):
+        make_model(gae_lambda=0.5)
 
 
 def test_reward_spread_measures_the_spread_within_floor_groups():
