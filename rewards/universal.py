@@ -3,10 +3,12 @@
 batch's device. They are registered by name in :data:`REWARDS` (add your own with :func:`register_reward`).
 
 * ``collision`` (Alg. 1): +1 when no two ground objects penetrate (3D box overlap > ``threshold`` m^3,
-  the metric's 1e-6), otherwise minus the total penetration volume (m^3) of the penetrating pairs.
+  the metric's 1e-6), otherwise minus the total penetration volume (m^3) of the penetrating pairs. With
+  ``per_object`` (our addition, default 0) also minus that much per colliding ground object: a scene with
+  one colliding pair scores better than one with three, which the scene-level bonus does not tell apart.
 * ``boundary`` (Alg. 2): +2 when no object's footprint (shrunk by ``shrink`` = 0.05 m per side, as the
   R_out metric) has more than ``threshold`` = 1e-5 m^2 outside the floor polygon, otherwise minus the total
-  out-of-bound area (m^2) of those objects.
+  out-of-bound area (m^2) of those objects; with ``per_object`` also minus that much per such object.
 * ``accessibility`` (Alg. 3): on an occupancy grid (``cell`` m, 0.1 by default for speed; the metrics use
   0.05) with ground objects inflated and the walls eroded by the agent radius (0.3 m),
   ``1.0 * coverage - 0.1 * regions + 0.5 * clearance`` where ``coverage`` = cells of the largest free
@@ -99,25 +101,30 @@ def _out(values, batch: SceneBatch) -> torch.Tensor:
 
 @register_reward("collision")
 @single_thread()
-def collision_reward(batch: SceneBatch, threshold: float = geo.COLLISION_VOLUME, bonus: float = 1.0) -> torch.Tensor:
-    """+``bonus`` when no ground objects penetrate, else minus the total penetration volume (m^3)."""
-    vol = geo.box_overlap_volumes(batch.translations, batch.half_sizes, batch.yaws, batch.ground_mask).triu(1)
+def collision_reward(batch: SceneBatch, threshold: float = geo.COLLISION_VOLUME, bonus: float = 1.0,
+                     per_object: float = 0.0) -> torch.Tensor:
+    """+``bonus`` when no ground objects penetrate, else minus the total penetration volume (m^3); minus
+    ``per_object`` for each colliding ground object (the Col_obj metric's count)."""
+    vol = geo.box_overlap_volumes(batch.translations, batch.half_sizes, batch.yaws, batch.ground_mask)
     penetrating = vol > threshold
-    total = (vol * penetrating).sum((1, 2))
-    return _out(torch.where(penetrating.flatten(1).any(1), -total, torch.full_like(total, bonus)), batch)
+    total = (vol * penetrating).triu(1).sum((1, 2))
+    reward = torch.where(penetrating.flatten(1).any(1), -total, torch.full_like(total, bonus))
+    return _out(reward - per_object * penetrating.any(2).sum(1), batch)
 
 
 @register_reward("boundary")
 @single_thread()
 def boundary_reward(batch: SceneBatch, shrink: float = geo.OUT_OF_BOUND_SHRINK,
                     threshold: float = geo.OUT_OF_BOUND_AREA, bonus: float = 2.0,
-                    ground_only: bool = False) -> torch.Tensor:
-    """+``bonus`` when every footprint stays on the floor, else minus the out-of-bound area (m^2)."""
+                    ground_only: bool = False, per_object: float = 0.0) -> torch.Tensor:
+    """+``bonus`` when every footprint stays on the floor, else minus the out-of-bound area (m^2); minus
+    ``per_object`` for each object out of bound (the R_out metric's count)."""
     mask = batch.ground_mask if ground_only else batch.mask
     area = geo.box_out_of_floor_area(batch.translations, batch.half_sizes, batch.yaws, batch.floors, mask, shrink)
     outside = area > threshold
     total = (area * outside).sum(1)
-    return _out(torch.where(outside.any(1), -total, torch.full_like(total, bonus)), batch)
+    reward = torch.where(outside.any(1), -total, torch.full_like(total, bonus))
+    return _out(reward - per_object * outside.sum(1), batch)
 
 
 @register_reward("accessibility")

@@ -48,6 +48,20 @@ def test_boundary_reward_is_two_inside_and_minus_the_out_area_otherwise():
     assert r0[0].item() == pytest.approx(-(1.0 * 0.5 + 0.25), rel=1e-5)
 
 
+def test_per_object_penalties_count_the_offending_objects_as_the_metrics_do():
+    """Three wardrobes in a row, the middle one overlapping both others: three colliding objects (Col_obj
+    counts objects, not pairs); an L-shaped room with two objects through its notch: two out of bound."""
+    row = make_layout([box("wardrobe", x, 1.5, 0.5, 0.3) for x in (1.0, 1.9, 2.8)])
+    pair = make_layout([box("wardrobe", 1.0, 1.5, 0.5, 0.3), box("cabinet", 1.9, 1.5, 0.5, 0.3)])
+    plain = collision_reward(batch(row, pair))
+    counted = collision_reward(batch(row, pair), per_object=0.5)
+    np.testing.assert_allclose((plain - counted).numpy(), [1.5, 1.0], rtol=1e-6)
+    through = make_layout([box("wardrobe", 3.0, 2.0, 0.5, 0.5), box("cabinet", 2.0, 2.0, 0.5, 0.5)], floor=L_SHAPE)
+    inside = make_layout([box("nightstand", 1.0, 1.0, 0.3, 0.3)], floor=L_SHAPE)
+    diff = boundary_reward(batch(through, inside)) - boundary_reward(batch(through, inside), per_object=1.0)
+    np.testing.assert_allclose(diff.numpy(), [2.0, 0.0])
+
+
 def test_floor_contact_reward_is_one_on_the_floor_and_minus_the_gaps_beyond_the_tolerance_otherwise():
     standing = make_layout([box("double_bed", 1.0, 1.5, 0.9, 1.0, y0=0.03),
                             ("ceiling_lamp", (2, 2.4, 1.5), (0.3, 0.1, 0.3), 0.0)])
