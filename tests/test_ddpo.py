@@ -1,5 +1,7 @@
 """DDPO on the denoising MDP with a tiny prior: the loss, learning, persistence, resuming, callbacks."""
 
+import functools
+
 import gymnasium as gym
 import numpy as np
 import pytest
@@ -33,8 +35,9 @@ def mean_x(scene):
 
 
 def make_env(num_envs=8, reward=mean_x):
+    # a fresh callable per env: a test that gives it composite-style ``weights`` must not leak them to the next
     return gym.make_vec("iARCS-Bedroom-v0", num_envs=num_envs, vectorization_mode="vector_entry_point",
-                        floors=FLOORS, stats=default_stats("bedroom"), reward=reward, num_steps=STEPS)
+                        floors=FLOORS, stats=default_stats("bedroom"), reward=functools.partial(reward), num_steps=STEPS)
 
 
 def make_model(algo=DDPO, seed=0, **kw):
