@@ -288,7 +288,8 @@ class DDPO:
     def _x0_advantages(self, rewards, floor_index, values, terms=None, term_values=None) -> torch.Tensor:
         """(B, S) advantages of ``x0_baseline``: r - beta_t r(x0_hat(x_t)) standardised per step; with
         ``per_term_advantages``, sum_k w_k z_k,t with z_k,t term k's residual standardised per step, standardised
-        again. Logs ``x0_baseline_r2``, the share of the total reward's within-group variance the baseline
+        again. With ``gae_lambda`` < 1, :func:`gae_advantages` takes the fitted residual's place. Logs
+        ``x0_baseline_r2``, the share of the total reward's within-group variance the baseline
         explains, averaged over the steps."""
         groups = self._groups(floor_index)
         residual, _, r2 = x0_baseline_fit(rewards, values, groups)
