@@ -226,7 +226,8 @@ def test_save_load_round_trip_gives_identical_samples(tmp_path):
     assert not torch.allclose(a.translations, c.translations)
 
 
-@pytest.mark.parametrize("options", [{}, {"x0_baseline": True}], ids=["plain", "x0_baseline"])
+@pytest.mark.parametrize("options", [{}, {"x0_baseline": True}, {"x0_baseline": True, "gae_lambda": 0.5}],
+                         ids=["plain", "x0_baseline", "gae_lambda"])
 def test_resume_after_interruption_matches_an_uninterrupted_run(tmp_path, options):
     full = make_model(**options)
     full.learn(8 * STEPS * 4)
