@@ -73,6 +73,9 @@ class DDPOConfig:
     step's change of the predicted scene's reward, centred and standardised per step. lambda = 1 is the
     fitted baseline above; lambda = 0 credits a step only with what it changed itself (least variance,
     greedy: biased towards improvements the following steps keep)."""
+    gradient_steps: int = 4
+    """``physics-gradient`` only (agents/physics_gradient.py): the last k stochastic steps whose x0_hat gets the
+    gradient of the physics penalty."""
     kl_coef: float = 0.0
     """Weight of a KL penalty to the policy the adapter starts from (its reference adapter, e.g. stage 1 for a
     partial stage-2 adapter; else the prior, adapters disabled), against diversity collapse and drift."""
@@ -573,9 +576,12 @@ ALGORITHMS: dict[str, type[DDPO]] = {"DDPO-IS": DDPO, "DDPO-SF": DDPOSF}
 
 
 def get_algorithm(name: str) -> type[DDPO]:
-    """``ddpo`` / ``ddpo-is`` or ``ddpo-sf`` (case-insensitive)."""
+    """``ddpo`` / ``ddpo-is``, ``ddpo-sf`` or ``physics-gradient`` (case-insensitive)."""
     key = name.upper().replace("_", "-")
     key = {"DDPO": "DDPO-IS"}.get(key, key)
     if key not in ALGORITHMS:
-        raise ValueError(f"unknown algorithm {name!r}; choose one of: ddpo (= ddpo-is), ddpo-sf")
+        raise ValueError(f"unknown algorithm {name!r}; choose one of: ddpo (= ddpo-is), ddpo-sf, physics-gradient")
     return ALGORITHMS[key]
+
+
+from . import physics_gradient  # noqa: E402,F401  (registers PhysicsGradient in ALGORITHMS)

@@ -539,7 +539,7 @@ def box_out_of_floor_area(translations: torch.Tensor, half_sizes: torch.Tensor, 
     ox, oz, c, s, hx, hz = feats[obj].unbind(1)
     ax, az, bx, bz = table["edges"][edge].unbind(1)
     term, enters = _rect_edge_terms(c, s, hx, hz, ax - ox, az - oz, bx - ox, bz - oz)
-    inside = torch.bincount(obj, weights=term, minlength=K)
+    inside = term.new_zeros(K).index_add(0, obj, term)  # differentiable, unlike bincount
     crossed = torch.bincount(obj[enters], minlength=K) > 0
     area = 4 * feats[:, 4] * feats[:, 5]
     snapped = torch.where(inside > 0.5 * area, torch.zeros_like(area), area)

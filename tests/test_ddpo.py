@@ -12,6 +12,7 @@ import iarcs_env  # noqa: F401
 from conftest import load_benchmark, perturb_zero_init
 from agents.callbacks import CheckpointCallback, EvalCallback, StopTrainingOnRewardThreshold
 from agents.ddpo import DDPO, DDPOSF, gae_advantages, get_algorithm
+from agents.physics_gradient import PhysicsGradient, physics_penalty
 from agents.denoiser import ScenePrior
 from agents.policy import DiffusionPolicy
 from iarcs_env.datasets.procedural import generate_layouts
@@ -172,6 +173,54 @@ def test_gae_lambda_zero_credits_a_step_only_with_its_own_change():
     assert corr(adv[:, 0], a) > 0.99 and corr(adv[:, 1], b) > 0.99 and abs(corr(adv[:, 0], b)) < 0.3
     with pytest.raises(ValueError, match="gae_lambda .* needs x0_baseline"):
         make_model(gae_lambda=0.5)
+
+
+def test_physics_penalty_is_the_overlap_volume_plus_the_out_of_bound_area_and_descends():
+    """Axis-aligned boxes, where the bounds' overlap is the exact one: two overlapping boxes in an L-shaped room
+    and one through its notch score what the metrics' geometry measures on the decoded scene, and a small step
+    down the penalty's gradient in the model features lowers it."""
+    from iarcs_env import geometry as geo
+    from iarcs_env.scene import SceneBatch
+    from scene_factory import L_SHAPE, box, make_layout
+
+    stats = default_stats("bedroom")
+    layout = make_layout([box("wardrobe", 1.0, 1.0, 0.5, 0.3), box("cabinet", 1.8, 1.0, 0.5, 0.3),
+                          box("nightstand", 3.0, 2.0, 0.3, 0.3), box("double_bed", 1.0, 3.0, 0.7, 0.9)], floor=L_SHAPE)
+    batch = SceneBatch.from_layouts([layout.centred()])
+    x0 = batch.encode(stats).clone().requires_grad_(True)
+    penalty = physics_penalty(x0, stats, batch.floors)
+    scene = SceneBatch.decode(x0.detach(), stats, batch.floors)
+    volume = geo.box_overlap_volumes(scene.translations, scene.half_sizes, scene.yaws, scene.ground_mask).triu(1).sum()
+    outside = geo.box_out_of_floor_area(scene.translations, scene.half_sizes, scene.yaws, scene.floors, scene.mask,
+                                        geo.OUT_OF_BOUND_SHRINK).sum()
+    assert volume > 0.05 and outside > 0.05  # both parts are there
+    assert penalty.item() == pytest.approx(float(volume + outside), rel=1e-4)
+    penalty.sum().backward()
+    assert x0.grad[..., [0, 2]].abs().sum() > 0 and x0.grad[..., 3:6].abs().sum() > 0
+    stepped = physics_penalty(x0.detach() - 1e-3 * x0.grad, stats, batch.floors)
+    assert stepped.item() < penalty.item()
+
+
+def test_physics_gradient_lowers_the_penalty_of_its_rollouts_and_resumes_by_name(tmp_path):
+    model = make_model(PhysicsGradient, learning_rate=1e-2, gradient_steps=2)
+    assert get_algorithm("physics-gradient") is PhysicsGradient
+    rollout = model.collect_rollouts()
+    steps = model.stochastic_steps()[-2:]
+    floors = [model.venv.floors[int(i)] for i in rollout["floor_index"][:, 0]]
+
+    def penalty():
+        with torch.no_grad():
+            x0 = model.policy._step(rollout["x_t"][:, steps[-1]], rollout["t"][:, steps[-1]],
+                                    rollout["floor"][:, steps[-1]]).pred_original_sample
+        return float(physics_penalty(x0, model.venv.stats, floors).mean())
+
+    before = penalty()
+    for _ in range(20):
+        info = model.train(rollout)
+    assert penalty() < 0.7 * before and info["loss"] > 0
+    model.save(tmp_path / "ckpt")
+    resumed = DDPO.load(tmp_path / "ckpt", DiffusionPolicy(tiny_prior(), num_steps=STEPS), make_env(), verbose=0)
+    assert type(resumed) is PhysicsGradient and resumed.config.gradient_steps == 2
 
 
 def test_reward_spread_measures_the_spread_within_floor_groups():
