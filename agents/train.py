@@ -45,7 +45,7 @@ class TrainConfig:
     ``init_adapter`` (the prior without one). Empty: all of them, or with ``init_adapter`` the same as that
     adapter. ``[elevation, height]`` lowers or raises objects but keeps which objects a room has and where."""
     algorithm: str = "ddpo"
-    """ddpo (= ddpo-is) or ddpo-sf."""
+    """ddpo (= ddpo-is), ddpo-sf or physics-gradient (agents/physics_gradient.py)."""
     num_envs: int = 32
     """B: scenes per rollout batch (the vector env's size)."""
     num_steps: int = 20
