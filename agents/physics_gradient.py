@@ -53,6 +53,12 @@ class PhysicsGradient(DDPO):
 
     name = "PHYSICS-GRADIENT"
 
+    def __init__(self, policy, env, **kwargs):
+        super().__init__(policy, env, **kwargs)
+        if self.config.gradient_steps < 1:
+            raise ValueError(f"gradient_steps must be at least 1 (the last steps whose x0_hat gets the gradient); "
+                             f"got {self.config.gradient_steps}")
+
     def train(self, rollout: TensorDict) -> dict[str, float]:
         cfg, venv = self.config, self.venv
         steps = self.stochastic_steps()[-cfg.gradient_steps:]
@@ -65,7 +71,7 @@ class PhysicsGradient(DDPO):
                 rows = perm[start:start + cfg.minibatch_size]
                 mb = rollout[rows][:, steps].reshape(-1).to(self.device)
                 floors = [venv.floors[int(i)] for i in mb["floor_index"]]
-                x0_hat = self.policy._step(mb["x_t"], mb["t"], mb["floor"]).pred_original_sample
+                x0_hat = self.policy.predict_x0(mb["x_t"], mb["t"], mb["floor"])
                 loss = physics_penalty(x0_hat.cpu(), venv.stats, floors).mean()
                 self.optimizer.zero_grad(set_to_none=True)
                 loss.backward()

@@ -246,6 +246,10 @@ class DiffusionPolicy(nn.Module):
         # passing prev_sample makes step() compute the Gaussian without drawing from it
         return self.schedule.step(eps, t, x_t, eta=self.eta, prev_sample=x_t, prev_timestep=t_prev)
 
+    def predict_x0(self, x_t, t, floor) -> torch.Tensor:
+        """x0_hat_theta(x_t): the clean scene the step predicts (differentiable in the adapter)."""
+        return self._step(x_t, t, floor).pred_original_sample
+
     def log_prob(self, x_t, t, floor, x_prev) -> torch.Tensor:
         """log pi(x_prev | x_t, t, floor), mean-reduced per scene: (B,)."""
         mean, std = self(x_t, t, floor)

@@ -210,8 +210,8 @@ def test_physics_gradient_lowers_the_penalty_of_its_rollouts_and_resumes_by_name
 
     def penalty():
         with torch.no_grad():
-            x0 = model.policy._step(rollout["x_t"][:, steps[-1]], rollout["t"][:, steps[-1]],
-                                    rollout["floor"][:, steps[-1]]).pred_original_sample
+            x0 = model.policy.predict_x0(rollout["x_t"][:, steps[-1]], rollout["t"][:, steps[-1]],
+                                         rollout["floor"][:, steps[-1]])
         return float(physics_penalty(x0, model.venv.stats, floors).mean())
 
     before = penalty()
@@ -221,6 +221,8 @@ def test_physics_gradient_lowers_the_penalty_of_its_rollouts_and_resumes_by_name
     model.save(tmp_path / "ckpt")
     resumed = DDPO.load(tmp_path / "ckpt", DiffusionPolicy(tiny_prior(), num_steps=STEPS), make_env(), verbose=0)
     assert type(resumed) is PhysicsGradient and resumed.config.gradient_steps == 2
+    with pytest.raises(ValueError, match="gradient_steps must be at least 1"):
+        make_model(PhysicsGradient, gradient_steps=0)
 
 
 def test_reward_spread_measures_the_spread_within_floor_groups():
