@@ -8,8 +8,8 @@ Per stored state x_t of the last ``gradient_steps`` stochastic steps of a rollou
     loss = mean over scenes of  sum_{i<j ground} V_ij(x0_hat(x_t)) + sum_i A_i(x0_hat(x_t))
 
 with V_ij the overlap volume of the axis-aligned bounds of boxes i and j (exact for axis-aligned furniture, as
-most is, along the walls) and A_i the area (m^2) of box i's footprint, shrunk by 0.05 m per side as in R_out, outside the
-floor polygon. Classes come from x0_hat's arg-max (no gradient). A policy gradient from 32 scenes an epoch has
+most is, along the walls) and A_i the area (m^2) of box i's footprint, shrunk by 0.05 m per side as in R_out,
+outside the floor polygon. Classes come from x0_hat's arg-max (no gradient). A policy gradient from 32 scenes an epoch has
 to discover, scene by scene, which way separates two objects; this gradient says it for every pair. It uses
 :class:`~agents.ddpo.DDPO`'s rollouts, evaluation, checkpoints and callbacks; only the update differs.
 """
