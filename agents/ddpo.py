@@ -76,6 +76,8 @@ class DDPOConfig:
     gradient_steps: int = 4
     """``physics-gradient`` only (agents/physics_gradient.py): the last k stochastic steps whose x0_hat gets the
     gradient of the physics penalty."""
+    out_of_bound_weight: float = 1.0
+    """``physics-gradient`` only: the weight of the out-of-bound area (m^2) next to the overlap volume (m^3)."""
     kl_coef: float = 0.0
     """Weight of a KL penalty to the policy the adapter starts from (its reference adapter, e.g. stage 1 for a
     partial stage-2 adapter; else the prior, adapters disabled), against diversity collapse and drift."""

@@ -5,13 +5,14 @@ through the sampler; here through one step's x0_hat, as DiffuScene's physical lo
 
 Per stored state x_t of the last ``gradient_steps`` stochastic steps of a rollout:
 
-    loss = mean over scenes of  sum_{i<j ground} V_ij(x0_hat(x_t)) + sum_i A_i(x0_hat(x_t))
+    loss = mean over scenes of  sum_{i<j ground} V_ij(x0_hat(x_t)) + w_out sum_i A_i(x0_hat(x_t))
 
 with V_ij the overlap volume of the axis-aligned bounds of boxes i and j (exact for axis-aligned furniture, as
 most is, along the walls) and A_i the area (m^2) of box i's footprint, shrunk by 0.05 m per side as in R_out,
-outside the floor polygon. Classes come from x0_hat's arg-max (no gradient). A policy gradient from 32 scenes an epoch has
-to discover, scene by scene, which way separates two objects; this gradient says it for every pair. It uses
-:class:`~agents.ddpo.DDPO`'s rollouts, evaluation, checkpoints and callbacks; only the update differs.
+outside the floor polygon; w_out is ``out_of_bound_weight``. Classes come from x0_hat's arg-max (no gradient).
+A policy gradient from 32 scenes an epoch has to discover, scene by scene, which way separates two objects;
+this gradient says it for every pair. It uses :class:`~agents.ddpo.DDPO`'s rollouts, evaluation, checkpoints
+and callbacks; only the update differs.
 """
 
 from __future__ import annotations
@@ -27,10 +28,10 @@ from . import distributed
 from .ddpo import ALGORITHMS, DDPO
 
 
-def physics_penalty(x0: torch.Tensor, stats, floors) -> torch.Tensor:
-    """(B,) overlap volume (m^3) of every pair of ground objects' axis-aligned bounds plus the out-of-bound
-    area (m^2, footprints shrunk by 0.05 m) of every object, of model features ``x0`` (B, N, 8 + K) on
-    ``floors``; differentiable in the positions and yaws."""
+def physics_penalty(x0: torch.Tensor, stats, floors, out_of_bound_weight: float = 1.0) -> torch.Tensor:
+    """(B,) overlap volume (m^3) of every pair of ground objects' axis-aligned bounds plus
+    ``out_of_bound_weight`` times the out-of-bound area (m^2, footprints shrunk by 0.05 m) of every object, of
+    model features ``x0`` (B, N, 8 + K) on ``floors``; differentiable in the positions and yaws."""
     spec = stats.spec
     trans, half, yaws = decode_geometry(x0, stats, floor_half_extents(floors).to(x0))
     labels = x0[..., 8:].argmax(-1)
@@ -43,13 +44,14 @@ def physics_penalty(x0: torch.Tensor, stats, floors) -> torch.Tensor:
     pairs = (ground[:, :, None] & ground[:, None]).triu(1)
     volume = (overlap.prod(-1) * pairs).sum((1, 2))
     outside = geo.box_out_of_floor_area(trans, half, yaws, floors, valid, geo.OUT_OF_BOUND_SHRINK).sum(1)
-    return volume + outside.to(volume)
+    return volume + out_of_bound_weight * outside.to(volume)
 
 
 class PhysicsGradient(DDPO):
     """The physics gradient (module doc) with :class:`DDPO`'s surface: ``learn``, ``save``/``load``,
-    callbacks. Uses ``learning_rate``, ``minibatch_size``, ``num_inner_epochs``, ``max_grad_norm`` and
-    ``gradient_steps`` of :class:`~agents.ddpo.DDPOConfig`; the env's reward is logged, not optimised."""
+    callbacks. Uses ``learning_rate``, ``minibatch_size``, ``num_inner_epochs``, ``max_grad_norm``,
+    ``gradient_steps`` and ``out_of_bound_weight`` of :class:`~agents.ddpo.DDPOConfig`; the env's reward is
+    logged, not optimised."""
 
     name = "PHYSICS-GRADIENT"
 
@@ -72,7 +74,7 @@ class PhysicsGradient(DDPO):
                 mb = rollout[rows][:, steps].reshape(-1).to(self.device)
                 floors = [venv.floors[int(i)] for i in mb["floor_index"]]
                 x0_hat = self.policy.predict_x0(mb["x_t"], mb["t"], mb["floor"])
-                loss = physics_penalty(x0_hat.cpu(), venv.stats, floors).mean()
+                loss = physics_penalty(x0_hat.cpu(), venv.stats, floors, cfg.out_of_bound_weight).mean()
                 self.optimizer.zero_grad(set_to_none=True)
                 loss.backward()
                 distributed.average_gradients(self.policy.trainable_parameters())

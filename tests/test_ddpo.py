@@ -195,6 +195,8 @@ def test_physics_penalty_is_the_overlap_volume_plus_the_out_of_bound_area_and_de
                                         geo.OUT_OF_BOUND_SHRINK).sum()
     assert volume > 0.05 and outside > 0.05  # both parts are there
     assert penalty.item() == pytest.approx(float(volume + outside), rel=1e-4)
+    weighted = physics_penalty(x0.detach(), stats, batch.floors, out_of_bound_weight=3.0)
+    assert weighted.item() == pytest.approx(float(volume + 3 * outside), rel=1e-4)
     penalty.sum().backward()
     assert x0.grad[..., [0, 2]].abs().sum() > 0 and x0.grad[..., 3:6].abs().sum() > 0
     stepped = physics_penalty(x0.detach() - 1e-3 * x0.grad, stats, batch.floors)
