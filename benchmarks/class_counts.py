@@ -10,7 +10,9 @@ with at least MIN objects per room in the first file: the median footprint (m^2)
 top height (m), and the share of its objects more than 0.05 m off the floor (R_off_floor by class; – for
 ceiling and pendant lamps). It shows an adapter that changes sizes (a stage-2 run that lowers the beds), and
 one that moves furniture off the floor: furniture stands on it (bottom 0), so a bottom far from 0 is an
-object floating or sunk into the floor.
+object floating or sunk into the floor. ``--out-of-bound`` adds, for each file, which classes the objects out
+of the room (R_out's definition) are: per class its share of them and the share of its own objects that are
+out, and the median area outside (m^2) of all of them.
 """
 
 from __future__ import annotations
@@ -23,7 +25,9 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from iarcs_env import geometry as geo  # noqa: E402
 from iarcs_env.datasets import load_layouts  # noqa: E402
+from iarcs_env.metrics import batch_float64  # noqa: E402
 from iarcs_env.geometry import FLOOR_CONTACT_TOL  # noqa: E402
 from iarcs_env.rooms import CEILING_CLASSES  # noqa: E402
 
@@ -53,6 +57,36 @@ def class_sizes(layouts) -> dict[str, tuple]:
     return out
 
 
+def out_of_bound_by_class(layouts) -> tuple[dict[str, tuple[int, int]], list[float]]:
+    """Per class (objects out of bound, objects), with R_out's definition (footprint shrunk by 0.05 m, more
+    than 1e-5 m^2 outside the floor), and the area outside (m^2) of every object out of bound."""
+    counts, areas = {}, []
+    for start in range(0, len(layouts), 256):
+        chunk = layouts[start:start + 256]
+        b = batch_float64(chunk)
+        area = geo.box_out_of_floor_area(b.translations, b.half_sizes, b.yaws, b.floors, b.mask,
+                                         geo.OUT_OF_BOUND_SHRINK)
+        for i, lay in enumerate(chunk):
+            for j, label in enumerate(lay.labels):  # the batch holds each room's objects in its slots, in order
+                out = bool(area[i, j] > geo.OUT_OF_BOUND_AREA)
+                n_out, n = counts.get(label, (0, 0))
+                counts[label] = (n_out + out, n + 1)
+                if out:
+                    areas.append(float(area[i, j]))
+    return counts, areas
+
+
+def _print_out_of_bound(name: str, layouts) -> None:
+    counts, areas = out_of_bound_by_class(layouts)
+    total = max(len(areas), 1)
+    median = statistics.median(areas) if areas else 0.0
+    print(f"\n{name}: {len(areas)} objects out of bound, median area outside {median:.3f} m^2\n"
+          "| class | share of the out-of-bound objects | its objects out of bound |\n|---|---|---|")
+    for label, (n_out, n) in sorted(counts.items(), key=lambda kv: -kv[1][0]):
+        if n_out:
+            print(f"| {label} | {n_out / total:.2f} | {n_out} / {n} |")
+
+
 def _size_cell(size) -> str:
     area, bottom, top, off = size
     return f"{area:.2f} / {bottom:.2f} / {top:.2f} / " + ("–" if off is None else f"{off:.0f}%")
@@ -65,13 +99,16 @@ def main(argv=None) -> int:
     p.add_argument("--sizes", type=float, default=None, metavar="MIN",
                    help="also list median footprints, bottom and top heights, and the share off the floor, of the "
                         "classes with at least MIN objects per room in the first file")
+    p.add_argument("--out-of-bound", action="store_true",
+                   help="also list, per file, the classes of the objects out of the room and the median area outside")
     args = p.parse_args(argv)
-    rows, sizes = {}, {}
+    rows, sizes, files = {}, {}, {}
     for item in args.files:
         name, _, path = item.rpartition("=")
-        layouts = load_layouts(path, num_scenes=0)
-        rows[name or Path(path).stem] = class_counts(layouts)
-        sizes[name or Path(path).stem] = class_sizes(layouts)
+        name = name or Path(path).stem
+        files[name] = layouts = load_layouts(path, num_scenes=0)
+        rows[name] = class_counts(layouts)
+        sizes[name] = class_sizes(layouts)
     summary = ["bed (any)", "rooms with a bed %", "objects"]
     first = next(iter(rows.values()))
     classes = sorted({c for row in rows.values() for c, v in row.items() if c not in summary and v >= args.min},
@@ -85,6 +122,9 @@ def main(argv=None) -> int:
               + "---|" * len(rows))
         for c in [c for c in classes if first.get(c, 0.0) >= args.sizes]:
             print(f"| {c} | " + " | ".join(_size_cell(size[c]) if c in size else "–" for size in sizes.values()) + " |")
+    if args.out_of_bound:
+        for name, layouts in files.items():
+            _print_out_of_bound(name, layouts)
     return 0
 
 

@@ -292,3 +292,19 @@ def test_class_counts_per_room_and_rooms_with_a_bed(tmp_path, capsys):
     lines = capsys.readouterr().out.splitlines()
     assert "| double_bed | 4.00 / 0.00 / 0.80 / 0% | – |" in lines
     assert "| nightstand | 0.25 / 0.00 / 0.80 / 0% | 0.25 / 0.00 / 0.80 / 0% |" in lines
+
+
+def test_class_counts_names_the_classes_of_the_objects_out_of_the_room(tmp_path, capsys):
+    """``--out-of-bound``: a wardrobe through the notch of an L-shaped room (0.9 m x 0.45 m outside once shrunk by
+    0.05 m) is out, the nightstand well inside is not; R_out's definition, class by class."""
+    from iarcs_env.datasets import save_layouts
+
+    script = load_benchmark("class_counts")
+    room = make_layout([box("wardrobe", 3.0, 2.0, 0.5, 0.5), box("nightstand", 1.0, 1.0, 0.3, 0.3)], floor=L_SHAPE)
+    counts, areas = script.out_of_bound_by_class([room, room])
+    assert counts == {"wardrobe": (2, 2), "nightstand": (0, 2)}
+    assert areas == pytest.approx([0.9 * 0.45] * 2, rel=1e-6)  # the half of its 0.9 x 0.9 shrunk footprint past z = 2
+    save_layouts([room], tmp_path / "l.json")
+    assert script.main([str(tmp_path / "l.json"), "--out-of-bound"]) == 0
+    out = capsys.readouterr().out
+    assert "l: 1 objects out of bound, median area outside 0.405 m^2" in out and "| wardrobe | 1.00 | 1 / 1 |" in out
