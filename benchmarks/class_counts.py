@@ -12,7 +12,8 @@ ceiling and pendant lamps). It shows an adapter that changes sizes (a stage-2 ru
 one that moves furniture off the floor: furniture stands on it (bottom 0), so a bottom far from 0 is an
 object floating or sunk into the floor. ``--out-of-bound`` adds, for each file, which classes the objects out
 of the room (R_out's definition) are: per class its share of them and the share of its own objects that are
-out, and the median area outside (m^2) of all of them.
+out, and the median area outside (m^2) of all of them; then R_out by the number of corners of the floor
+(4: rectangles, 6: L-shaped rooms, ...).
 """
 
 from __future__ import annotations
@@ -57,27 +58,30 @@ def class_sizes(layouts) -> dict[str, tuple]:
     return out
 
 
-def out_of_bound_by_class(layouts) -> tuple[dict[str, tuple[int, int]], list[float]]:
+def out_of_bound_by_class(layouts) -> tuple[dict[str, tuple[int, int]], list[float], dict[int, tuple[int, int, int]]]:
     """Per class (objects out of bound, objects), with R_out's definition (footprint shrunk by 0.05 m, more
-    than 1e-5 m^2 outside the floor), and the area outside (m^2) of every object out of bound."""
-    counts, areas = {}, []
+    than 1e-5 m^2 outside the floor); the area outside (m^2) of every object out of bound; and per number of
+    floor corners (4: a rectangle, 6: an L) (rooms, objects out of bound, objects)."""
+    counts, areas, shapes = {}, [], {}
     for start in range(0, len(layouts), 256):
         chunk = layouts[start:start + 256]
         b = batch_float64(chunk)
         area = geo.box_out_of_floor_area(b.translations, b.half_sizes, b.yaws, b.floors, b.mask,
                                          geo.OUT_OF_BOUND_SHRINK)
         for i, lay in enumerate(chunk):
-            for j, label in enumerate(lay.labels):  # the batch holds each room's objects in its slots, in order
-                out = bool(area[i, j] > geo.OUT_OF_BOUND_AREA)
+            out = area[i, :len(lay)] > geo.OUT_OF_BOUND_AREA  # the batch holds each room's objects in its slots
+            for label, is_out, a in zip(lay.labels, out.tolist(), area[i].tolist()):
                 n_out, n = counts.get(label, (0, 0))
-                counts[label] = (n_out + out, n + 1)
-                if out:
-                    areas.append(float(area[i, j]))
-    return counts, areas
+                counts[label] = (n_out + is_out, n + 1)
+                if is_out:
+                    areas.append(a)
+            rooms, n_out, n = shapes.get(len(lay.floor.vertices), (0, 0, 0))
+            shapes[len(lay.floor.vertices)] = (rooms + 1, n_out + int(out.sum()), n + len(lay))
+    return counts, areas, dict(sorted(shapes.items()))
 
 
 def _print_out_of_bound(name: str, layouts) -> None:
-    counts, areas = out_of_bound_by_class(layouts)
+    counts, areas, shapes = out_of_bound_by_class(layouts)
     total = max(len(areas), 1)
     median = statistics.median(areas) if areas else 0.0
     print(f"\n{name}: {len(areas)} objects out of bound, median area outside {median:.3f} m^2\n"
@@ -85,6 +89,9 @@ def _print_out_of_bound(name: str, layouts) -> None:
     for label, (n_out, n) in sorted(counts.items(), key=lambda kv: -kv[1][0]):
         if n_out:
             print(f"| {label} | {n_out / total:.2f} | {n_out} / {n} |")
+    print("\n| floor corners | rooms | R_out |\n|---|---|---|")
+    for corners, (rooms, n_out, n) in shapes.items():
+        print(f"| {corners} | {rooms} | {n_out / max(n, 1):.3f} |")
 
 
 def _size_cell(size) -> str:

@@ -328,10 +328,13 @@ def test_class_counts_names_the_classes_of_the_objects_out_of_the_room(tmp_path,
 
     script = load_benchmark("class_counts")
     room = make_layout([box("wardrobe", 3.0, 2.0, 0.5, 0.5), box("nightstand", 1.0, 1.0, 0.3, 0.3)], floor=L_SHAPE)
-    counts, areas = script.out_of_bound_by_class([room, room])
-    assert counts == {"wardrobe": (2, 2), "nightstand": (0, 2)}
+    rect = make_layout([box("wardrobe", 1.0, 1.0, 0.5, 0.5)])
+    counts, areas, shapes = script.out_of_bound_by_class([room, room, rect])
+    assert counts == {"wardrobe": (2, 3), "nightstand": (0, 2)}
+    assert shapes == {4: (1, 0, 1), 6: (2, 2, 4)}  # corners: (rooms, objects out, objects)
     assert areas == pytest.approx([0.9 * 0.45] * 2, rel=1e-6)  # the half of its 0.9 x 0.9 shrunk footprint past z = 2
     save_layouts([room], tmp_path / "l.json")
     assert script.main([str(tmp_path / "l.json"), "--out-of-bound"]) == 0
     out = capsys.readouterr().out
     assert "l: 1 objects out of bound, median area outside 0.405 m^2" in out and "| wardrobe | 1.00 | 1 / 1 |" in out
+    assert "| 6 | 1 | 0.500 |" in out
