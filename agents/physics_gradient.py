@@ -5,13 +5,11 @@ through the sampler; here through one step's x0_hat, as DiffuScene's physical lo
 
 Per stored state x_t of the last ``gradient_steps`` stochastic steps of a rollout:
 
-    loss = mean over scenes of  sum_{i<j ground} V_ij(x0_hat(x_t)) + w_out sum_i (A_i + D_i)(x0_hat(x_t))
+    loss = mean over scenes of  sum_{i<j ground} V_ij(x0_hat(x_t)) + w_out sum_i A_i(x0_hat(x_t))
 
 with V_ij the overlap volume of the axis-aligned bounds of boxes i and j (exact for axis-aligned furniture, as
-most is, along the walls), A_i the area (m^2) of box i's footprint, shrunk by 0.05 m per side as in R_out,
-outside the floor polygon, and D_i the summed distance (m) of that footprint's corners outside the floor;
-w_out is ``out_of_bound_weight``. D_i is what moves a footprint wholly outside the floor (the prior puts
-furniture in the missing corner of L-shaped rooms), where A_i is constant and has no gradient. Classes come from x0_hat's arg-max (no gradient).
+most is, along the walls) and A_i the area (m^2) of box i's footprint, shrunk by 0.05 m per side as in R_out,
+outside the floor polygon; w_out is ``out_of_bound_weight``. Classes come from x0_hat's arg-max (no gradient).
 A policy gradient from 32 scenes an epoch has to discover, scene by scene, which way separates two objects;
 this gradient says it for every pair. It uses :class:`~agents.ddpo.DDPO`'s rollouts, evaluation, checkpoints
 and callbacks; only the update differs.
@@ -32,9 +30,8 @@ from .ddpo import ALGORITHMS, DDPO
 
 def physics_penalty(x0: torch.Tensor, stats, floors, out_of_bound_weight: float = 1.0) -> torch.Tensor:
     """(B,) overlap volume (m^3) of every pair of ground objects' axis-aligned bounds plus
-    ``out_of_bound_weight`` times the out-of-bound area (m^2) and the corners' distance outside (m) of every
-    object's footprint (shrunk by 0.05 m), of model features ``x0`` (B, N, 8 + K) on ``floors``;
-    differentiable in the positions and yaws."""
+    ``out_of_bound_weight`` times the out-of-bound area (m^2, footprints shrunk by 0.05 m) of every object, of
+    model features ``x0`` (B, N, 8 + K) on ``floors``; differentiable in the positions and yaws."""
     spec = stats.spec
     trans, half, yaws = decode_geometry(x0, stats, floor_half_extents(floors).to(x0))
     labels = x0[..., 8:].argmax(-1)
@@ -46,8 +43,7 @@ def physics_penalty(x0: torch.Tensor, stats, floors, out_of_bound_weight: float 
     overlap = (torch.minimum(hi[:, :, None], hi[:, None]) - torch.maximum(lo[:, :, None], lo[:, None])).clamp_min(0)
     pairs = (ground[:, :, None] & ground[:, None]).triu(1)
     volume = (overlap.prod(-1) * pairs).sum((1, 2))
-    outside = (geo.box_out_of_floor_area(trans, half, yaws, floors, valid, geo.OUT_OF_BOUND_SHRINK)
-               + geo.footprint_outside_distance(trans, half, yaws, floors, valid, geo.OUT_OF_BOUND_SHRINK)).sum(1)
+    outside = geo.box_out_of_floor_area(trans, half, yaws, floors, valid, geo.OUT_OF_BOUND_SHRINK).sum(1)
     return volume + out_of_bound_weight * outside.to(volume)
 
 

@@ -547,34 +547,6 @@ def box_out_of_floor_area(translations: torch.Tensor, half_sizes: torch.Tensor, 
     return result
 
 
-@single_thread()
-def footprint_outside_distance(translations: torch.Tensor, half_sizes: torch.Tensor, yaws: torch.Tensor,
-                               floors: Sequence[FloorPlan], valid: torch.Tensor, shrink: float = 0.0) -> torch.Tensor:
-    """Sum over each box footprint's 4 corners (each side moved in by ``shrink`` m) of the corner's distance
-    (m) to its scene's floor polygon when the corner lies outside it, 0 when inside: ``(B, N)`` float64, 0 for
-    invalid slots. Differentiable; unlike :func:`box_out_of_floor_area` (constant for a footprint wholly
-    outside the floor), its gradient moves such a footprint towards the nearest wall."""
-    dev = translations.device
-    corners = footprints(translations.double(), half_sizes.double(), yaws.double(), shrink)[..., None, :]
-    table = _batch_floor_edges(floors, dev)
-    edge_ids = torch.arange(int(table["count"].max()), device=dev)
-    real = edge_ids < table["count"][:, None]  # (B, E): floors have different numbers of edges
-    edges = table["edges"][table["first"][:, None] + torch.minimum(edge_ids, table["count"][:, None] - 1)]
-    a, b = (edges[:, None, None, :, k:k + 2] for k in (0, 2))  # (B, 1, 1, E, 2)
-    ab, ap = b - a, corners - a  # corners (B, N, 4, 1, 2)
-    along = ((ap * ab).sum(-1) / (ab * ab).sum(-1).clamp_min(1e-12)).clamp(0, 1)
-    dist = (ap - along[..., None] * ab).square().sum(-1).clamp_min(1e-18).sqrt()
-    dist = torch.where(real[:, None, None], dist, torch.inf).amin(-1)  # (B, N, 4) to the nearest edge
-    # even-odd rule: edges crossed by the ray from the corner towards +x
-    px, pz = corners[..., 0], corners[..., 1]
-    az, bz = a[..., 1], b[..., 1]
-    straddles = (az > pz) != (bz > pz)
-    cross_x = a[..., 0] + (pz - az) * ab[..., 0] / torch.where(straddles, bz - az, torch.ones_like(az))
-    crossings = (straddles & (px < cross_x) & real[:, None, None]).sum(-1)
-    outside = torch.where(crossings % 2 == 1, torch.zeros_like(dist), dist).sum(-1)
-    return torch.where(valid, outside, torch.zeros_like(outside))
-
-
 # ------------------------------------------------------------------------------------------------------
 # walkable grids (NumPy + SciPy)
 # ------------------------------------------------------------------------------------------------------

@@ -87,33 +87,6 @@ def test_flush_against_the_wall_is_not_out_of_bound_thanks_to_the_shrink():
     assert r.out_of_bound[0, 0] and r.out_area[0, 0] == pytest.approx(0.10 * 0.5, abs=1e-12)
 
 
-def test_corner_distance_outside_the_floor_is_known_agrees_with_shapely_and_pulls_back_in():
-    """footprint_outside_distance: a box wholly in the missing corner of an L-shaped room (where the
-    out-of-bound area is constant and has no gradient) scores its corners' distances to the floor, agrees
-    with shapely on random scenes, and a step down its gradient brings the box towards the room."""
-    from shapely.geometry import Point, Polygon
-
-    notch = box("nightstand", 3.0, 3.0, 0.3, 0.3)  # shrunk corners at 2.75 / 3.25 on both axes
-    b = batch_float64([make_layout([notch, box("cabinet", 1.0, 1.0, 0.5, 0.5)], floor=L_SHAPE)])
-    t = b.translations.clone().requires_grad_(True)
-    d = geo.footprint_outside_distance(t, b.half_sizes, b.yaws, b.floors, b.mask, geo.OUT_OF_BOUND_SHRINK)
-    assert d[0].tolist() == pytest.approx([3 * 0.75 + 1.25, 0.0])
-    d.sum().backward()
-    assert t.grad[0, 0, 0] > 0 and t.grad[0, 0, 2] > 0  # down the gradient: towards x, z < 2 (the room)
-    area = geo.box_out_of_floor_area(t, b.half_sizes, b.yaws, b.floors, b.mask, geo.OUT_OF_BOUND_SHRINK)
-    assert not torch.autograd.grad(area.sum(), t)[0].any()  # why the distance is needed
-    for lay in random_layouts(12, seed=4):
-        lay = lay.centred()
-        r = batch_float64([lay])
-        got = geo.footprint_outside_distance(r.translations, r.half_sizes, r.yaws, r.floors, r.mask,
-                                             geo.OUT_OF_BOUND_SHRINK)[0, :len(lay)]
-        floor = Polygon(lay.floor.vertices)
-        want = [sum(floor.exterior.distance(Point(c)) * (not floor.covers(Point(c)))
-                    for c in ref.footprint(lay, k, geo.OUT_OF_BOUND_SHRINK).exterior.coords[:4])
-                for k in range(len(lay))]
-        np.testing.assert_allclose(got.numpy(), want, atol=1e-9)
-
-
 # --- floor contact -----------------------------------------------------------------------------------
 def test_sunk_and_lifted_furniture_is_off_the_floor_but_lamps_and_small_gaps_are_not():
     objects = [box("double_bed", 1.0, 1.5, 0.9, 1.0, y0=-0.15),   # sunk 0.15 m into the floor
