@@ -28,8 +28,8 @@ import numpy as np
 import torch
 
 from iarcs_env.rooms import get_room
-from iarcs_env.scene import (Layout, SceneBatch, decode_geometry, floor_half_extents, footprint_reach,
-                             scale_floor_points)
+from iarcs_env.scene import (Layout, SceneBatch, box_corners_xz, decode_geometry, floor_half_extents,
+                             footprint_reach, scale_floor_points)
 from iarcs_env.schedule import NoiseSchedule
 from iarcs_env.stats import DatasetStats
 
@@ -94,6 +94,14 @@ class PretrainConfig:
     overlap_max_timestep: int = 100
     """The overlap loss applies below this t only: at higher noise x0_hat is a blurred average of layouts
     whose boxes overlap by nature (about 9 m^3 per scene at t = 400 for the 3,000-step prior)."""
+    out_of_bound_weight: float = 0.0
+    """Weight of a second auxiliary loss on x0_hat: for every object of the training scene, the distance (m)
+    by which each corner of its footprint (the data's size and yaw at x0_hat's floor position) lies behind the
+    wall nearest to it, beyond the data's own corner (:func:`out_of_bound_excess`), summed per scene, at noise
+    levels t < ``out_of_bound_max_timestep``. Aims at furniture in the missing part of an L-shaped room's
+    bounding box. 0: none."""
+    out_of_bound_max_timestep: int = 100
+    """The out-of-bound loss applies below this t only."""
     cond_drop_prob: float = 0.1
     """Probability of dropping the floor condition (zeroed) per scene: enables classifier-free guidance."""
     rotation_augment: bool = True
@@ -135,15 +143,17 @@ class PretrainConfig:
         for name in ("num_scenes", "steps", "batch_size", "checkpoint_every", "log_every", "eval_every"):
             if getattr(self, name) <= 0:
                 raise ValueError(f"{name} must be positive, got {getattr(self, name)}")
-        if self.overlap_weight < 0:
-            raise ValueError(f"overlap_weight must be at least 0, got {self.overlap_weight}")
+        for name in ("overlap_weight", "out_of_bound_weight"):
+            if getattr(self, name) < 0:
+                raise ValueError(f"{name} must be at least 0, got {getattr(self, name)}")
         if self.translation_weight <= 0:
             raise ValueError(f"translation_weight must be positive, got {self.translation_weight}")
         if not 0 <= self.cond_drop_prob < 1:
             raise ValueError(f"cond_drop_prob must be in [0, 1), got {self.cond_drop_prob}")
         num_t = NoiseSchedule().num_train_timesteps
-        if not 0 <= self.overlap_max_timestep <= num_t:
-            raise ValueError(f"overlap_max_timestep must be in [0, {num_t}], got {self.overlap_max_timestep}")
+        for name in ("overlap_max_timestep", "out_of_bound_max_timestep"):
+            if not 0 <= getattr(self, name) <= num_t:
+                raise ValueError(f"{name} must be in [0, {num_t}], got {getattr(self, name)}")
         if not 0 <= self.max_timestep <= num_t:
             raise ValueError(f"max_timestep must be in [0, {num_t}] (0: all), got {self.max_timestep}")
         if not 0 <= self.ema_decay < 1:
@@ -265,6 +275,33 @@ def overlap_excess(spec, stats: DatasetStats, extents: torch.Tensor, weight: flo
         area = lambda o: o[..., 0] * o[..., 2]  # noqa: E731
         excess = (area(placed) - area(data)).clamp_min(0) * data[..., 1] * pairs
         return weight * excess.flatten(1).sum(1) * (t < max_timestep)
+
+    return penalty
+
+
+def out_of_bound_excess(spec, stats: DatasetStats, extents: torch.Tensor, points: torch.Tensor,
+                        weight: float = 1.0, max_timestep: int = NoiseSchedule().num_train_timesteps) -> Callable:
+    """The ``x0_penalty`` of :meth:`NoiseSchedule.training_loss` for ``out_of_bound_weight``: per scene with
+    t < ``max_timestep``, ``weight`` times the sum over the objects (non-empty slots of x0) and the 4 corners
+    of their footprints of relu(b(x0_hat) - b(x0)), with b a corner's distance (m) behind the wall nearest to
+    it: relu(-(c - p) . n) for the floor's boundary point p nearest to the corner c and that point's inward
+    normal n (``points`` (B, P, 4): x, z, nx, nz in metres; the batch carries these, not the polygons). The
+    footprints of x0_hat are the data's at x0_hat's floor positions, as in :func:`overlap_excess`; the data's
+    own overhangs cost nothing."""
+
+    def behind(x):  # (B, N, 4) metres behind the nearest wall, per footprint corner
+        trans, half, yaws = decode_geometry(x, stats, extents)
+        corners = box_corners_xz(trans[..., [0, 2]], half[..., [0, 2]], yaws)[..., None, :]  # (B, N, 4, 1, 2)
+        offset = corners - points[:, None, None, :, :2]  # (B, N, 4, P, 2)
+        nearest = offset.square().sum(-1).argmin(-1, keepdim=True)
+        along_normal = (offset * points[:, None, None, :, 2:]).sum(-1).gather(-1, nearest).squeeze(-1)
+        return (-along_normal).clamp_min(0)
+
+    def penalty(x0_hat, x0, t):
+        objects = x0[..., 8:].argmax(-1) != spec.empty_index
+        placed = behind(torch.cat([x0_hat[..., :3], x0[..., 3:]], -1))
+        excess = (placed - behind(x0)).clamp_min(0).sum(-1) * objects
+        return weight * excess.sum(1) * (t < max_timestep)
 
     return penalty
 
@@ -492,10 +529,14 @@ def train(cfg: PretrainConfig, layouts: Sequence[Layout] | None = None, max_step
             low_t = None
             if cfg.max_timestep:
                 low_t = torch.randint(0, cfg.max_timestep, (x0.shape[0],), generator=gen).to(device)
-            penalty = None
+            penalties = []
             if cfg.overlap_weight:
-                penalty = overlap_excess(spec, stats, batch[-1].to(device), cfg.overlap_weight,
-                                         cfg.overlap_max_timestep)
+                penalties.append(overlap_excess(spec, stats, batch[-1].to(device), cfg.overlap_weight,
+                                                cfg.overlap_max_timestep))
+            if cfg.out_of_bound_weight:
+                penalties.append(out_of_bound_excess(spec, stats, batch[-1].to(device), batch[-2].to(device),
+                                                     cfg.out_of_bound_weight, cfg.out_of_bound_max_timestep))
+            penalty = (lambda x0_hat, x0, t: sum(p(x0_hat, x0, t) for p in penalties)) if penalties else None
             with torch.autocast(device.type, dtype=torch.bfloat16, enabled=cfg.precision == "bf16"):
                 loss = schedule.training_loss(lambda x, t: net(x, t, floor).float(), x0, gen, t=low_t,
                                               feature_weights=weights, x0_penalty=penalty)

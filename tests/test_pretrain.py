@@ -12,7 +12,7 @@ import torch
 
 from agents.denoiser import ScenePrior
 from agents.pretrain import (PRIOR_FILE, STATE_FILE, PretrainConfig, SceneTensors, config_from_dict,
-                             encode_batch, load_config, lr_at, overlap_excess, resolve_dataset,
+                             encode_batch, load_config, lr_at, out_of_bound_excess, overlap_excess, resolve_dataset,
                              stats_for_training, train)
 from iarcs_env import FloorPlan, Layout, get_room
 from iarcs_env.datasets import save_layouts
@@ -212,6 +212,39 @@ def test_low_noise_fine_tune_trains_only_below_max_timestep(tmp_path, monkeypatc
     assert len(seen) == 5 and all(int(t.max()) < 40 for t in seen)
     with pytest.raises(ValueError, match="max_timestep"):
         tiny_config(tmp_path, max_timestep=1001)
+
+
+def test_out_of_bound_loss_measures_corners_behind_the_walls_and_pulls_objects_in():
+    """The ``out_of_bound_weight`` loss on an L-shaped room: 0 on the data, the corners' distances behind the
+    nearest wall when the prediction moves a nightstand into the missing corner, only below its timestep, and
+    its gradient moves the nightstand back towards the room."""
+    from iarcs_env.scene import floor_half_extents
+    from tests.scene_factory import L_SHAPE, box, make_layout
+
+    room = make_layout([box("double_bed", 1.0, 1.0, 0.9, 0.7), box("nightstand", 0.5, 3.0, 0.25, 0.25)],
+                       floor=L_SHAPE).centred()  # the missing corner: x, z in [0, 2] after centring
+    stats = stats_for_training([room], "bedroom", rotation_augment=True)
+    stats.translation_frame = "room"
+    batch = SceneTensors.from_layouts([room], BEDROOM.max_objects).batch(torch.arange(1))
+    x0, _ = encode_batch(BEDROOM, stats, *batch)
+    penalty = out_of_bound_excess(BEDROOM, stats, floor_half_extents([room.floor]), batch[4], weight=2.0,
+                                  max_timestep=100)
+    early = torch.tensor([10])
+    assert float(penalty(x0, x0, early)) == pytest.approx(0.0, abs=1e-6)
+    labels, trans, half, yaws = batch[:4]
+    moved = trans.clone()
+    moved[0, 1, [0, 2]] = torch.tensor([1.0, 1.0])  # the nightstand's centre 1 m inside the missing corner
+    x_hat, _ = encode_batch(BEDROOM, stats, labels, moved, half, yaws, *batch[4:])
+    # corners at 0.75 and 1.25 on both axes, each behind the nearer of the walls x = 0 and z = 0
+    want = 2.0 * (0.75 + 0.75 + 0.75 + 1.25)
+    assert float(penalty(x_hat, x0, early)) == pytest.approx(want, abs=0.03)  # boundary points every ~6 cm
+    assert float(penalty(x_hat, x0, torch.tensor([100]))) == 0.0
+    x_hat.requires_grad_(True)
+    penalty(x_hat, x0, early).sum().backward()
+    assert float(x_hat.grad[0, 1, 0]) > 0 and float(x_hat.grad[0, 1, 2]) > 0  # down the gradient: towards -x, -z
+    assert float(x_hat.grad[0, 1, 3:].abs().max()) == 0.0  # nothing resized or turned
+    with pytest.raises(ValueError, match="out_of_bound_weight"):
+        PretrainConfig(out_of_bound_weight=-1.0)
 
 
 def test_overlap_loss_measures_the_excess_over_the_data_and_pushes_objects_apart():
