@@ -82,6 +82,9 @@ class PretrainConfig:
     """Weight of the floor-plane translation features (x, z) in the epsilon loss, the others 1. Placement
     against the walls is learnt from these 2 of the ~30 features per slot, mostly at small t; a weight
     above 1 spends more of the loss on it (1: the plain DDPM loss)."""
+    elevation_weight: float = 1.0
+    """Weight of the elevation feature (y, the box centre's height) in the epsilon loss. Above 1 keeps
+    furniture on the floor while an auxiliary loss pulls the network elsewhere (1: the plain DDPM loss)."""
     max_timestep: int = 0
     """Train on noise levels t < ``max_timestep`` only (0: all T): a fine-tune of the low-noise steps, which
     place objects to the centimetre (validation losses stay over all t)."""
@@ -146,8 +149,9 @@ class PretrainConfig:
         for name in ("overlap_weight", "out_of_bound_weight"):
             if getattr(self, name) < 0:
                 raise ValueError(f"{name} must be at least 0, got {getattr(self, name)}")
-        if self.translation_weight <= 0:
-            raise ValueError(f"translation_weight must be positive, got {self.translation_weight}")
+        for name in ("translation_weight", "elevation_weight"):
+            if getattr(self, name) <= 0:
+                raise ValueError(f"{name} must be positive, got {getattr(self, name)}")
         if not 0 <= self.cond_drop_prob < 1:
             raise ValueError(f"cond_drop_prob must be in [0, 1), got {self.cond_drop_prob}")
         num_t = NoiseSchedule().num_train_timesteps
@@ -277,6 +281,17 @@ def overlap_excess(spec, stats: DatasetStats, extents: torch.Tensor, weight: flo
         return weight * excess.flatten(1).sum(1) * (t < max_timestep)
 
     return penalty
+
+
+def loss_feature_weights(cfg: PretrainConfig, feature_dim: int) -> torch.Tensor | None:
+    """Per-feature weights of the epsilon loss (``translation_weight`` on x and z, ``elevation_weight`` on y,
+    1 elsewhere), or None for the plain loss."""
+    if cfg.translation_weight == 1.0 and cfg.elevation_weight == 1.0:
+        return None
+    weights = torch.ones(feature_dim)
+    weights[[0, 2]] = cfg.translation_weight
+    weights[1] = cfg.elevation_weight
+    return weights
 
 
 def out_of_bound_excess(spec, stats: DatasetStats, extents: torch.Tensor, points: torch.Tensor,
@@ -448,10 +463,7 @@ def train(cfg: PretrainConfig, layouts: Sequence[Layout] | None = None, max_step
     torch.manual_seed(cfg.seed)
     net = SceneDenoiser(cfg.denoiser_config(), spec.feature_dim)
     net.set_metric_scale(stats)
-    weights = None  # validation losses stay the plain loss, comparable across recipes
-    if cfg.translation_weight != 1.0:
-        weights = torch.ones(spec.feature_dim)
-        weights[[0, 2]] = cfg.translation_weight  # translation x, z (y is the height)
+    weights = loss_feature_weights(cfg, spec.feature_dim)  # validation losses stay the plain loss
     if init is not None:
         net.load_state_dict(init.denoiser.state_dict())
         log(f"initialised from {cfg.init_from}")

@@ -12,7 +12,7 @@ import torch
 
 from agents.denoiser import ScenePrior
 from agents.pretrain import (PRIOR_FILE, STATE_FILE, PretrainConfig, SceneTensors, config_from_dict,
-                             encode_batch, load_config, lr_at, out_of_bound_excess, overlap_excess, resolve_dataset,
+                             encode_batch, load_config, loss_feature_weights, lr_at, out_of_bound_excess, overlap_excess, resolve_dataset,
                              stats_for_training, train)
 from iarcs_env import FloorPlan, Layout, get_room
 from iarcs_env.datasets import save_layouts
@@ -212,6 +212,14 @@ def test_low_noise_fine_tune_trains_only_below_max_timestep(tmp_path, monkeypatc
     assert len(seen) == 5 and all(int(t.max()) < 40 for t in seen)
     with pytest.raises(ValueError, match="max_timestep"):
         tiny_config(tmp_path, max_timestep=1001)
+
+
+def test_loss_feature_weights_weigh_the_floor_position_and_the_elevation():
+    assert loss_feature_weights(PretrainConfig(), 30) is None  # the plain DDPM loss
+    w = loss_feature_weights(PretrainConfig(translation_weight=3.0, elevation_weight=2.0), 30)
+    assert w[:3].tolist() == [3.0, 2.0, 3.0] and (w[3:] == 1).all() and w.shape == (30,)
+    with pytest.raises(ValueError, match="elevation_weight must be positive"):
+        PretrainConfig(elevation_weight=0.0)
 
 
 def test_out_of_bound_loss_measures_corners_behind_the_walls_and_pulls_objects_in():
