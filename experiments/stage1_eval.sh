@@ -9,7 +9,10 @@ PY=${PY:-.venv/bin/python}
 mkdir -p "$OUT"
 # 500 procedural bedrooms with a seed used neither by the prior (0) nor by RL training (1000): held-out floors
 $IARCS data generate --room bedroom --num-scenes 500 --seed 777 --out "$OUT/floors.json"
-$IARCS sample --room bedroom --floors "$OUT/floors.json" --num-scenes 500 --seed 0 --out "$OUT/base.json"
+# the base samples come from the run's own prior (its config's `prior:`), without the adapter
+PRIOR=$($PY -c "import sys; from agents.train import load_train_config; print(load_train_config(sys.argv[1]).prior)" "$RUN/config.yaml")
+BASE_CHECKPOINT=(); [ "$PRIOR" = default ] || BASE_CHECKPOINT=(--checkpoint "$PRIOR")
+$IARCS sample --room bedroom --floors "$OUT/floors.json" --num-scenes 500 --seed 0 "${BASE_CHECKPOINT[@]}" --out "$OUT/base.json"
 $IARCS sample --room bedroom --floors "$OUT/floors.json" --num-scenes 500 --seed 0 --checkpoint "$RUN" --out "$OUT/stage1.json"
 $IARCS evaluate --scenes "$OUT/base.json" --reference "$OUT/base.json" --features none --name "prior (base)" --out "$OUT/base_report.json"
 $IARCS evaluate --scenes "$OUT/stage1.json" --reference "$OUT/base.json" --features none --name "stage 1 (LoRA)" --out "$OUT/stage1_report.json"
