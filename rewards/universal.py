@@ -52,6 +52,12 @@ batch's device. They are registered by name in :data:`REWARDS` (add your own wit
   batch's objects (both smoothed with ``eps``): the per-object score of ``-KL(batch || training)`` over
   object labels (the KL_class metric), 0 once the batch has the training shares.
 
+* ``required_class`` (our addition): 0 when the scene holds an object of ``classes`` (a group of
+  ``iarcs_env.relations.CLASS_GROUPS`` such as ``"bed"``, or a list of classes), else -1. The content terms
+  above price a bedroom without a bed at about log(1 - 0.8) = -1.6, while with ``per_object`` a bed touching
+  two nightstands costs three colliding objects: stage 1 then removes the bed. This term lets a config
+  make a missing bed cost more than any collision it avoids.
+
 Ground objects are all but ceiling and pendant lamps; object counts include every non-empty slot.
 The rewards run torch single-threaded (``iarcs_env.geometry.single_thread``): their tensors are small, and
 intra-op threads only slow them down on a busy CPU.
@@ -66,6 +72,7 @@ import torch
 
 from iarcs_env import geometry as geo
 from iarcs_env.geometry import single_thread
+from iarcs_env.relations import ALL_CLASSES, CLASS_GROUPS
 from iarcs_env.scene import SceneBatch
 from iarcs_env.stats import DatasetStats
 
@@ -234,6 +241,20 @@ def class_frequency_reward(batch: SceneBatch, stats: DatasetStats | None = None,
     counts = _class_counts(batch).to(f)  # (B, C)
     g = counts.sum(0) / counts.sum().clamp(min=1) + eps
     return (counts @ ((f / f.sum()).log() - (g / g.sum()).log())).float()
+
+
+@register_reward("required_class")
+def required_class_reward(batch: SceneBatch, classes: str | list[str] = "bed") -> torch.Tensor:
+    """0 for a scene with an object of ``classes`` (a class group name, e.g. ``"bed"``, or a list of
+    classes), -1 for a scene without one."""
+    labels = CLASS_GROUPS.get(classes, (classes,)) if isinstance(classes, str) else tuple(classes)
+    known = [c for c in labels if c in batch.spec.classes]
+    if not known or any(c not in ALL_CLASSES for c in labels):
+        raise ValueError(f"required_class: {list(labels)} is not a class group nor classes of {batch.spec.name} rooms; name a class "
+                         f"group ({', '.join(sorted(CLASS_GROUPS))}) or classes of "
+                         f"{batch.spec.name} rooms ({', '.join(batch.spec.classes)})")
+    counts = _class_counts(batch)[:, [batch.spec.classes.index(c) for c in known]]
+    return _out((counts.sum(1) > 0).float() - 1.0, batch)
 
 
 def _per_class(batch: SceneBatch, values: dict, name: str) -> torch.Tensor:

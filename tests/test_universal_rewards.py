@@ -12,7 +12,7 @@ from iarcs_env.metrics import batch_float64
 from iarcs_env.scene import SceneBatch
 from iarcs_env.stats import DatasetStats
 from rewards import (REWARDS, CompositeReward, accessibility_reward, boundary_reward, class_frequency_reward,
-                     class_presence_reward, collision_reward, floor_contact_reward, object_count_reward,
+                     class_presence_reward, collision_reward, floor_contact_reward, object_count_reward, required_class_reward,
                      register_reward, wall_alignment_reward)
 from scene_factory import L_SHAPE, box, make_layout, random_layouts
 
@@ -174,6 +174,23 @@ def test_match_modes_score_the_batch_against_the_training_rates():
     r = object_count_reward(SceneBatch.from_layouts(skewed, num_slots=12), stats=count_stats, mode="match")
     assert r[0].item() == pytest.approx(np.log(0.225 / 0.125), abs=0.01)
     assert r[1].item() == pytest.approx(np.log(0.05 / 0.875), abs=0.01) and torch.allclose(r[1:], r[1].expand(7))
+
+
+def test_required_class_prices_a_room_without_any_object_of_the_group():
+    stand = box("nightstand", 1.4, -0.8, 0.25, 0.25)
+    rooms = [make_layout([box("double_bed", 0.0, 0.0, 1.0, 1.1), stand]), make_layout([box("single_bed", 0.0, 0.0, 0.5, 1.0)]),
+             make_layout([stand]), make_layout([])]
+    scenes = SceneBatch.from_layouts(rooms, num_slots=12)
+    # any bed counts (the "bed" group): double and single beds pass, the room with only a nightstand and the
+    # empty room pay -1
+    np.testing.assert_array_equal(required_class_reward(scenes).numpy(), [0.0, 0.0, -1.0, -1.0])
+    np.testing.assert_array_equal(required_class_reward(scenes, classes=["nightstand"]).numpy(), [0.0, -1.0, 0.0, -1.0])
+    np.testing.assert_array_equal(required_class_reward(scenes, classes="double_bed").numpy(), [0.0, -1.0, -1.0, -1.0])
+    total, terms = CompositeReward.from_config({"required_class": {"weight": 5.0, "classes": "bed"}})(scenes)
+    np.testing.assert_array_equal(total.numpy(), [0.0, 0.0, -5.0, -5.0])
+    for bad in ("sofa_bed", ["double_bed", "water_bed"], "dining_table"):  # unknown, a typo in a list, not a bedroom class
+        with pytest.raises(ValueError, match="required_class"):
+            required_class_reward(scenes, classes=bad)
 
 
 def test_class_frequency_scores_each_object_against_the_batch_and_training_shares():
