@@ -1,5 +1,6 @@
 """Rewards: the universal rewards (collision, boundary, accessibility, floor contact, wall alignment,
-object-count, class-presence and class-frequency priors, required classes) and the composite reward that sums them with weights.
+object-count, class-presence and class-frequency priors, required classes) and the composite reward that sums
+them with weights.
 ``iarcs_env`` never imports this package."""
 
 from .composite import CompositeReward

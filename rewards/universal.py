@@ -248,13 +248,11 @@ def required_class_reward(batch: SceneBatch, classes: str | list[str] = "bed") -
     """0 for a scene with an object of ``classes`` (a class group name, e.g. ``"bed"``, or a list of
     classes), -1 for a scene without one."""
     labels = CLASS_GROUPS.get(classes, (classes,)) if isinstance(classes, str) else tuple(classes)
-    known = [c for c in labels if c in batch.spec.classes]
-    if not known or any(c not in ALL_CLASSES for c in labels):
-        raise ValueError(f"required_class: {list(labels)} is not a class group nor classes of {batch.spec.name} rooms; name a class "
-                         f"group ({', '.join(sorted(CLASS_GROUPS))}) or classes of "
-                         f"{batch.spec.name} rooms ({', '.join(batch.spec.classes)})")
-    counts = _class_counts(batch)[:, [batch.spec.classes.index(c) for c in known]]
-    return _out((counts.sum(1) > 0).float() - 1.0, batch)
+    columns = [batch.spec.classes.index(c) for c in labels if c in batch.spec.classes]
+    if not columns or any(c not in ALL_CLASSES for c in labels):
+        raise ValueError(f"required_class: {classes!r} is neither a class group ({', '.join(sorted(CLASS_GROUPS))}) "
+                         f"nor classes of {batch.spec.name} rooms ({', '.join(batch.spec.classes)})")
+    return _out((_class_counts(batch)[:, columns].sum(1) > 0).float() - 1.0, batch)
 
 
 def _per_class(batch: SceneBatch, values: dict, name: str) -> torch.Tensor:

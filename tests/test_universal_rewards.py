@@ -12,8 +12,8 @@ from iarcs_env.metrics import batch_float64
 from iarcs_env.scene import SceneBatch
 from iarcs_env.stats import DatasetStats
 from rewards import (REWARDS, CompositeReward, accessibility_reward, boundary_reward, class_frequency_reward,
-                     class_presence_reward, collision_reward, floor_contact_reward, object_count_reward, required_class_reward,
-                     register_reward, wall_alignment_reward)
+                     class_presence_reward, collision_reward, floor_contact_reward, object_count_reward,
+                     register_reward, required_class_reward, wall_alignment_reward)
 from scene_factory import L_SHAPE, box, make_layout, random_layouts
 
 
@@ -178,17 +178,18 @@ def test_match_modes_score_the_batch_against_the_training_rates():
 
 def test_required_class_prices_a_room_without_any_object_of_the_group():
     stand = box("nightstand", 1.4, -0.8, 0.25, 0.25)
-    rooms = [make_layout([box("double_bed", 0.0, 0.0, 1.0, 1.1), stand]), make_layout([box("single_bed", 0.0, 0.0, 0.5, 1.0)]),
-             make_layout([stand]), make_layout([])]
+    double, single = box("double_bed", 0.0, 0.0, 1.0, 1.1), box("single_bed", 0.0, 0.0, 0.5, 1.0)
+    rooms = [make_layout([double, stand]), make_layout([single]), make_layout([stand]), make_layout([])]
     scenes = SceneBatch.from_layouts(rooms, num_slots=12)
     # any bed counts (the "bed" group): double and single beds pass, the room with only a nightstand and the
     # empty room pay -1
     np.testing.assert_array_equal(required_class_reward(scenes).numpy(), [0.0, 0.0, -1.0, -1.0])
-    np.testing.assert_array_equal(required_class_reward(scenes, classes=["nightstand"]).numpy(), [0.0, -1.0, 0.0, -1.0])
-    np.testing.assert_array_equal(required_class_reward(scenes, classes="double_bed").numpy(), [0.0, -1.0, -1.0, -1.0])
+    np.testing.assert_array_equal(required_class_reward(scenes, classes=["nightstand"]).numpy(), [0, -1, 0, -1])
+    np.testing.assert_array_equal(required_class_reward(scenes, classes="double_bed").numpy(), [0, -1, -1, -1])
     total, terms = CompositeReward.from_config({"required_class": {"weight": 5.0, "classes": "bed"}})(scenes)
     np.testing.assert_array_equal(total.numpy(), [0.0, 0.0, -5.0, -5.0])
-    for bad in ("sofa_bed", ["double_bed", "water_bed"], "dining_table"):  # unknown, a typo in a list, not a bedroom class
+    # an unknown class, a typo in a list, a class bedrooms do not have
+    for bad in ("sofa_bed", ["double_bed", "water_bed"], "dining_table"):
         with pytest.raises(ValueError, match="required_class"):
             required_class_reward(scenes, classes=bad)
 
