@@ -347,6 +347,9 @@ def test_cli_pretrain_and_sample(tmp_path, capsys):
     assert "step 4/4" in capsys.readouterr().out
     assert main(["pretrain", "--config", str(cfg), "--out", str(run), "--steps", "4", "--no-resume"]) == 2
     assert "drop --no-resume" in capsys.readouterr().err
+    assert main(["pretrain", "--config", str(cfg), "--out", str(run), "--steps", "6", "--stop-at", "5"]) == 0
+    assert "step 5/6" in capsys.readouterr().out  # stopped as if interrupted, with the 6-step schedule
+    assert main(["pretrain", "--config", str(cfg), "--out", str(run), "--stop-at", "0"]) == 2
 
     out = tmp_path / "samples.json"
     args = ["sample", "--room", "bedroom", "--checkpoint", str(run / PRIOR_FILE), "--steps", "3"]

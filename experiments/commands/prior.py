@@ -12,6 +12,9 @@ def register(sub) -> None:
     p.add_argument("--config", required=True, help="YAML config, e.g. experiments/pretrain_bedroom.yaml")
     p.add_argument("--out", default=None, help="run folder (default: the config's 'out')")
     p.add_argument("--steps", type=int, default=None, help="total optimizer steps (default: the config's)")
+    p.add_argument("--stop-at", type=int, default=None,
+                   help="stop at this global step as if interrupted there, keeping the config's learning-rate "
+                        "schedule; the run resumes later from it (default: run to --steps)")
     p.add_argument("--no-resume", action="store_true",
                    help="refuse to continue an existing run in the output folder (default: resume it)")
     add_device_option(p, "the network trains")
@@ -44,13 +47,15 @@ def cmd_pretrain(args) -> int:
 
     if args.steps is not None and args.steps <= 0:
         raise CLIError(f"--steps must be a positive number, got {args.steps}")
+    if args.stop_at is not None and args.stop_at <= 0:
+        raise CLIError(f"--stop-at must be a positive step, got {args.stop_at}")
     cfg = load_config(args.config, out=args.out, steps=args.steps, device=args.device)
     out = Path(cfg.out)
     if args.no_resume and (out / STATE_FILE).exists():
         raise CLIError(f"{out} already holds a run ({STATE_FILE}); drop --no-resume to continue it, or choose "
                        "another --out")
     try:
-        result = train(cfg, resume=not args.no_resume)
+        result = train(cfg, max_steps=args.stop_at, resume=not args.no_resume)
         main = distributed.is_main()
     finally:
         distributed.cleanup()
