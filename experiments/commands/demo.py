@@ -22,7 +22,7 @@ def register(sub) -> None:
     p.add_argument("--out", default="out/demo", help="output folder (default out/demo)")
     p.add_argument("--task", default="reach_1m",
                    help="paper task: reach_1m (default), tv_from_bed, study_zone, two_nightstands, wheelchair")
-    p.add_argument("--epochs", type=int, default=100, help="stage-2 epochs (default 100, about 8 minutes)")
+    p.add_argument("--epochs", type=int, default=100, help="stage-2 epochs (default 100, about 10 minutes on 2 cores)")
     p.add_argument("--num-scenes", type=int, default=64, help="scenes per row of the report (default 64)")
     p.add_argument("--seed", type=int, default=0)
     p.set_defaults(func=cmd_demo)
