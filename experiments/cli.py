@@ -16,6 +16,7 @@ COMMAND_MODULES = [
     "experiments.commands.train",
     "experiments.commands.demo",
     "experiments.commands.evaluate",
+    "experiments.commands.compare",
     "experiments.commands.prior",
     "experiments.commands.reward",
     "experiments.commands.generate",

@@ -99,7 +99,7 @@ def cmd_evaluate(args) -> int:
     result["reference_file"] = str(args.reference) if args.reference else None
     result["command"] = "iarcs " + " ".join(_quote(a) for a in sys.argv[1:]) if _is_cli() else None
     result["per_scene"] = [
-        {"id": s.id, "objects": s.n_objects, "colliding": s.colliding, "out_of_bound": s.out_of_bound,
+        {"id": s.id, "objects": s.n_objects, "ground_objects": s.n_ground, "colliding": s.colliding, "out_of_bound": s.out_of_bound,
          "unreachable_objects": s.unreachable_objects, "R_walkable": round(s.walkable, 6),
          "penetration_m3": round(s.penetration, 6), "out_area_m2": round(s.out_area, 6),
          **({"tasks": {name: bool(ok[i]) for name, ok in passed.items()}} if passed else {})}

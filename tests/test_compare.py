@@ -1,0 +1,77 @@
+"""``iarcs compare``: pooled changes between ``iarcs evaluate`` reports, with a floor-level bootstrap interval."""
+
+import json
+
+import pytest
+
+from experiments.cli import main
+from iarcs_env.compare import compare_reports
+from iarcs_env.datasets import save_layouts
+from scene_factory import box, make_layout, random_layouts
+
+
+def evaluate(tmp_path, layouts, name, *extra):
+    scenes, report = tmp_path / f"{name}.json", tmp_path / f"{name}_report.json"
+    save_layouts(layouts, scenes)
+    assert main(["evaluate", "--scenes", str(scenes), "--features", "none", "--out", str(report), *extra]) == 0
+    return report
+
+
+def pairs(n, apart):
+    """n bedrooms with a wardrobe and a cabinet; in the first ``apart`` rooms they stand apart, in the others
+    they overlap."""
+    return [make_layout([box("wardrobe", 1.0, 1.5, 0.5, 0.3), box("cabinet", 2.8 if i < apart else 1.8, 1.5, 0.5, 0.3)],
+                        id=f"room_{i}") for i in range(n)]
+
+
+def test_pooled_values_are_the_reports_own_and_pairs_pool(tmp_path):
+    a = evaluate(tmp_path, random_layouts(15, seed=0, max_objects=6), "seed0", "--task", "reach_1m")
+    b = evaluate(tmp_path, random_layouts(15, seed=1, max_objects=6), "seed1", "--task", "reach_1m")
+    ra, rb = json.loads(a.read_text()), json.loads(b.read_text())
+    one = {c.metric: c for c in compare_reports([ra], [ra], n_boot=200)}
+    for key in ("Col_obj", "Col_scene", "R_out", "R_reach", "R_walkable"):
+        assert one[key].base == pytest.approx(ra[key], abs=1e-6), key
+    assert one["task_reach_1m"].base == pytest.approx(ra["task_success_reach_1m"])
+    # identical sides: no change, and no spread in the interval
+    assert one["Col_obj"].change == 0 and one["Col_obj"].low == 0 and one["Col_obj"].high == 0
+    # two pairs pool their counts (not their rates)
+    both = {c.metric: c for c in compare_reports([ra, rb], [ra, rb], n_boot=200)}
+    ground = ra["n_ground_objects"] + rb["n_ground_objects"]
+    colliding = ra["Col_obj"] * ra["n_ground_objects"] + rb["Col_obj"] * rb["n_ground_objects"]
+    assert both["Col_obj"].base == pytest.approx(colliding / ground)
+
+
+def test_a_real_fall_has_an_interval_below_zero(tmp_path, capsys):
+    base = evaluate(tmp_path, pairs(40, apart=0), "base")
+    run = evaluate(tmp_path, pairs(40, apart=30), "run")
+    out = tmp_path / "change.json"
+    assert main(["compare", "--base", str(base), "--run", str(run), "--boot", "500", "--out", str(out)]) == 0
+    changes = {c["metric"]: c for c in json.loads(out.read_text())["changes"]}
+    col = changes["Col_obj"]
+    assert col["base"] == 1.0 and col["run"] == pytest.approx(0.25) and col["change"] == pytest.approx(-0.75)
+    assert -0.9 < col["low"] <= col["change"] <= col["high"] < -0.6
+    assert changes["R_out"]["base"] == 0  # nothing out of bound on either side: no change to speak of
+    printed = capsys.readouterr().out
+    assert "| Col_obj | 100.00% | 25.00% | -75.0% |" in printed and "| R_out | 0.00% | 0.00% | n/a |" in printed
+
+
+def test_user_errors_are_clear(tmp_path, capsys):
+    base = evaluate(tmp_path, pairs(4, apart=0), "base")
+    other = evaluate(tmp_path, pairs(5, apart=0), "other")
+    old = tmp_path / "old_report.json"
+    report = json.loads(base.read_text())
+    for scene in report["per_scene"]:
+        del scene["ground_objects"]
+    old.write_text(json.dumps(report))
+    cases = [
+        (["--base", str(base), str(base), "--run", str(base)], "pair every run report with a base report"),
+        (["--base", str(base), "--run", str(other)], "does not hold the same scenes"),
+        (["--base", str(old), "--run", str(base)], "evaluate its scenes again"),
+        (["--base", str(tmp_path / "base.json"), "--run", str(base)], "not an `iarcs evaluate` report"),
+        (["--base", str(tmp_path / "missing.json"), "--run", str(base)], "does not exist"),
+        (["--base", str(base), "--run", str(base), "--boot", "10"], "--boot must be at least 100"),
+    ]
+    for argv, message in cases:
+        assert main(["compare", *argv]) == 2, argv
+        err = capsys.readouterr().err
+        assert message in err and "Traceback" not in err, (argv, err)
