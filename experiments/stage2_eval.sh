@@ -3,7 +3,9 @@
 # the prior, the shipped stage-1 adapter and the task's stage-2 adapter, evaluated with `iarcs evaluate
 # --task` (success by the hand-written checker, physical metrics, SCA against the procedural training data),
 # next to the real bedrooms that satisfy the task.
-#   Usage: bash experiments/stage2_eval.sh TASK RUN_DIR [OUT_DIR]
+# The table is sampling seed 0's; stage 2 against stage 1 is then pooled over the sampling seeds in SEEDS
+# (default "0 1 2 3") by `iarcs compare`, with 90% bootstrap intervals of the changes.
+#   Usage: [SEEDS="0 1 2 3"] bash experiments/stage2_eval.sh TASK RUN_DIR [OUT_DIR]
 set -euo pipefail
 TASK=${1:?usage: stage2_eval.sh TASK RUN_DIR [OUT_DIR]}
 RUN=${2:?usage: stage2_eval.sh TASK RUN_DIR [OUT_DIR]}
@@ -55,3 +57,18 @@ PY
 COUNTS=("prior=$OUT/prior.json" "stage 1=$OUT/stage1.json" "stage 2=$OUT/stage2.json")
 [ -f "$OUT/real_subset.json" ] && COUNTS+=("real (satisfying)=$OUT/real_subset.json")
 $PY benchmarks/class_counts.py "${COUNTS[@]}" --sizes 0.1
+# stage 2 against stage 1, pooled over the sampling seeds (seed 0's reports are the ones above)
+SEEDS=${SEEDS:-0 1 2 3}
+STAGE1_REPORTS=(); STAGE2_REPORTS=()
+for SEED in $SEEDS; do
+  if [ "$SEED" = 0 ]; then STAGE1_REPORTS+=("$OUT/stage1_report.json"); STAGE2_REPORTS+=("$OUT/stage2_report.json"); continue; fi
+  $IARCS sample --room bedroom --floors "$OUT/floors.json" --num-scenes 500 --seed "$SEED" --checkpoint "$STAGE1" --out "$OUT/stage1_s$SEED.json"
+  $IARCS sample --room bedroom --floors "$OUT/floors.json" --num-scenes 500 --seed "$SEED" --checkpoint "$RUN" --out "$OUT/stage2_s$SEED.json"
+  for name in stage1 stage2; do
+    $IARCS evaluate --scenes "$OUT/${name}_s$SEED.json" --task "$TASK" --features none --name "$name, seed $SEED" \
+      --out "$OUT/${name}_s${SEED}_report.json"
+  done
+  STAGE1_REPORTS+=("$OUT/stage1_s${SEED}_report.json"); STAGE2_REPORTS+=("$OUT/stage2_s${SEED}_report.json")
+done
+echo; echo "stage 2 against stage 1, sampling seeds $SEEDS pooled:"
+$IARCS compare --base "${STAGE1_REPORTS[@]}" --run "${STAGE2_REPORTS[@]}" --out "$OUT/change_vs_stage1.json"
