@@ -26,9 +26,18 @@ for SEED in $SEEDS; do
   BASE_REPORTS+=("$OUT/base_s${SEED}_report.json"); RUN_REPORTS+=("$OUT/stage1_s${SEED}_report.json")
 done
 $IARCS compare --base "${BASE_REPORTS[@]}" --run "${RUN_REPORTS[@]}" --out "$OUT/change.json"
-$PY - "${RUN_REPORTS[@]}" <<'PY'
-import json, sys
-print("\nclass KL to the prior's samples, per seed:", ", ".join(f"{json.load(open(p))['KL_class']:.4f}" for p in sys.argv[1:]))
+# contents over all seeds: class-frequency KL to the prior's samples, objects a room, rooms with a bed
+$PY - "$OUT" $SEEDS <<'PY'
+import sys
+from iarcs_env.datasets import load_layouts
+from iarcs_env.metrics import class_kl
+from iarcs_env.relations import BEDS
+out, seeds = sys.argv[1], sys.argv[2:]
+base, run = ([lay for s in seeds for lay in load_layouts(f"{out}/{name}_s{s}.json")] for name in ("base", "stage1"))
+print(f"\nseeds {' '.join(seeds)} pooled: class KL to the prior's samples {class_kl(base, run):.3f}")
+for name, lays in (("prior", base), ("stage 1", run)):
+    beds = sum(any(label in BEDS for label in lay.labels) for lay in lays) / len(lays)
+    print(f"{name}: {sum(len(lay) for lay in lays) / len(lays):.2f} objects a room, a bed in {100 * beds:.1f}% of the rooms")
 PY
 # what the adapter added or removed, class by class (beds are the class most at risk), first seed
 FIRST=${SEEDS%% *}
