@@ -1,10 +1,14 @@
 """How well a scene prior (or an RL-tuned adapter) reproduces the object relations the paper's tasks are
-about, next to its training data: beds with the headboard against a wall, where nightstands sit along the
-bed, beds per room, and the five task success rates (hand-written checkers).
+about, next to its training data: beds with the headboard against a wall (and the median distance of
+the headboard's midpoint from the wall behind it), where nightstands sit along the bed, beds per room, and
+the five task success rates (hand-written checkers). two_nightstands is taken apart into its parts: rooms
+with a bed and at least two nightstands, and the share of nightstands (in rooms with a bed, measured from
+the nearest bed) that stand where the checker wants them, beside the head half within 0.5 m of the side.
 
     .venv/bin/python benchmarks/relation_fidelity.py                       # prior and shipped stage 1
     .venv/bin/python benchmarks/relation_fidelity.py --runs out/train/task_two_nightstands
     .venv/bin/python benchmarks/relation_fidelity.py --priors out/pretrain/bedroom_small/prior.pt
+    .venv/bin/python benchmarks/relation_fidelity.py --no-shipped --scenes prior=PRIOR.json real=REAL.json
 """
 
 from __future__ import annotations
@@ -16,6 +20,7 @@ import numpy as np
 import torch
 
 from iarcs_env import relations as rel
+from iarcs_env.datasets import load_layouts
 from iarcs_env.datasets.procedural import generate_layouts
 from iarcs_env.env import default_floors
 from iarcs_env.scene import SceneBatch
@@ -34,9 +39,28 @@ def relation_row(scenes: SceneBatch) -> dict:
     quartiles = np.quantile(along[pairs].numpy(), [0.25, 0.5, 0.75]) if pairs.any() else [np.nan] * 3
     row = {"beds / room": float(bed.sum(1).float().mean()),
            "headboard at a wall %": 100 * float((back[bed] < 0.1).float().mean()) if bed.any() else np.nan,
-           "nightstand along bed (q1, median, q3)": ", ".join(f"{q:+.2f}" for q in quartiles)}
+           "headboard to wall, median (m)": float(back[bed].median()) if bed.any() else np.nan,
+           "nightstand along bed (q1, median, q3)": ", ".join(f"{q:+.2f}" for q in quartiles),
+           "bed and 2+ nightstands %": 100 * float((bed.any(1) & (nightstand.sum(1) >= 2)).float().mean()),
+           "nightstands beside the head half %": nightstands_beside_head(scenes, bed, nightstand)}
     row.update({f"{name} %": 100 * float(np.mean(task.check(scenes))) for name, task in TASKS.items()})
     return row
+
+
+def nightstands_beside_head(scenes: SceneBatch, bed: torch.Tensor, nightstand: torch.Tensor) -> float:
+    """Share (%) of the nightstands in rooms with a bed whose centre, in the nearest bed's frame, lies where
+    two_nightstands wants it: along the head half, 0 to 0.5 m out from the bed's side."""
+    xz = scenes.translations[..., [0, 2]].double()
+    offset = rel.local_offset(xz, scenes.yaws.double())  # [b, i, j]: j in i's frame
+    nearest = rel.centre_distance(xz).masked_fill(~bed[:, :, None], float("inf")).argmin(1)  # [b, j] -> bed i
+    b, j = torch.nonzero(nightstand & bed.any(1, keepdim=True), as_tuple=True)
+    if len(b) == 0:
+        return np.nan
+    i = nearest[b, j]
+    lateral, forward = offset[b, i, j, 0].abs(), offset[b, i, j, 1]
+    half_width, half_depth = scenes.half_sizes[b, i, 0].double(), scenes.half_sizes[b, i, 2].double()
+    beside = (forward >= -half_depth) & (forward <= 0) & (lateral > half_width) & (lateral <= half_width + 0.5)
+    return 100 * float(beside.double().mean())
 
 
 def main() -> None:
@@ -45,6 +69,9 @@ def main() -> None:
     parser.add_argument("--seed", type=int, default=777, help="seed of the held-out floors and the data rooms")
     parser.add_argument("--runs", nargs="*", default=[], help="training run folders whose adapters to add")
     parser.add_argument("--priors", nargs="*", default=[], help="other prior checkpoints (prior.pt) to add")
+    parser.add_argument("--scenes", nargs="*", default=[], metavar="NAME=FILE",
+                        help="layout files (iarcs sample output, or any dataset file) to add as rows as they are")
+    parser.add_argument("--no-shipped", action="store_true", help="leave out the shipped prior's and stage 1's rows")
     args = parser.parse_args()
     torch.set_num_threads(1)
     from agents.denoiser import ScenePrior
@@ -53,13 +80,17 @@ def main() -> None:
     rows = {"procedural data": relation_row(SceneBatch.from_layouts(generate_layouts("bedroom", args.num_scenes,
                                                                                        seed=args.seed)))}
     floors = default_floors("bedroom", count=args.num_scenes, seed=args.seed)
-    stage1 = load_stage1_policy("bedroom")
-    for name, context in (("prior", stage1.base_policy), ("stage 1", contextlib.nullcontext)):
-        with context():
-            rows[name] = relation_row(stage1.sample(floors, generator=torch.Generator().manual_seed(0)))
+    if not args.no_shipped:
+        stage1 = load_stage1_policy("bedroom")
+        for name, context in (("prior", stage1.base_policy), ("stage 1", contextlib.nullcontext)):
+            with context():
+                rows[name] = relation_row(stage1.sample(floors, generator=torch.Generator().manual_seed(0)))
     for path in args.priors:
         rows[path] = relation_row(ScenePrior.load(path).sample(floors, generator=torch.Generator().manual_seed(0),
                                                                  batch_size=64))
+    for item in args.scenes:
+        name, _, path = item.rpartition("=")
+        rows[name or path] = relation_row(SceneBatch.from_layouts(load_layouts(path)))
     for run in args.runs:
         policy, _ = load_trained_policy(run)
         rows[run] = relation_row(policy.sample(floors, generator=torch.Generator().manual_seed(0)))

@@ -265,6 +265,23 @@ def test_eval_prior_position_errors_match_slots_of_the_same_class():
     assert err["bed"] == pytest.approx(0.0, abs=1e-6) and np.isnan(err["nightstand"])
 
 
+def test_relation_fidelity_takes_two_nightstands_apart():
+    """benchmarks/relation_fidelity.py: rooms with a bed and 2+ nightstands, and the share of nightstands
+    beside the nearest bed's head half (where the two_nightstands checker wants them)."""
+    from iarcs_env.scene import SceneBatch
+
+    script = load_benchmark("relation_fidelity")
+    bed = box("double_bed", 2.0, 1.05, 0.8, 1.0)  # faces +z; the headboard 0.05 m from the wall z = 0
+    left, right = box("nightstand", 3.05, 0.5, 0.2, 0.2), box("nightstand", 0.95, 0.5, 0.2, 0.2)
+    at_foot = box("nightstand", 3.05, 1.6, 0.2, 0.2)  # beside the foot half: not where the checker wants it
+    rooms = [make_layout([bed, left, right, at_foot]), make_layout([bed, at_foot]), make_layout([left, right])]
+    row = script.relation_row(SceneBatch.from_layouts(rooms))
+    assert row["bed and 2+ nightstands %"] == pytest.approx(100 / 3)
+    assert row["nightstands beside the head half %"] == pytest.approx(50.0)  # 2 of the 4 in rooms with a bed
+    assert row["headboard to wall, median (m)"] == pytest.approx(0.05, abs=1e-5)
+    assert row["two_nightstands %"] == pytest.approx(100 / 3)
+
+
 def test_class_counts_per_room_and_rooms_with_a_bed(tmp_path, capsys):
     """benchmarks/class_counts.py: what a run added or removed, class by class."""
     from iarcs_env.datasets import save_layouts
