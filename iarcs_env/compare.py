@@ -11,6 +11,10 @@ an interval:
   ``Col_obj`` = colliding / ground objects, ``Col_scene`` = scenes with a collision / scenes, ``R_out`` =
   out-of-bound / all objects, ``R_reach`` = reachable / ground objects, ``R_walkable`` = mean per scene, and
   ``task_<name>`` = scenes passing the checker / scenes (when the reports have ``--task``);
+* and three counts per room that say what a rate's change is made of: ``out_of_bound / room`` (R_out's
+  numerator), ``objects / room`` (its denominator) and ``ground_objects / room`` (Col_obj's; the difference
+  is the ceiling and pendant lamps, which never collide and are hardly ever out of bound, so an adapter
+  that adds lamps lowers R_out without moving any furniture back onto the floor);
 * change = run / base - 1 of the pooled values;
 * the interval resamples floor plans (scene ids, with every seed's scenes of a floor kept together, since one
   floor's samples are correlated) with replacement, ``n_boot`` times, and recomputes the change on each
@@ -26,6 +30,8 @@ import numpy as np
 
 #: Metrics compared (the tasks' success rates are added when every report has them).
 COMPARED = ("Col_obj", "Col_scene", "R_out", "R_reach", "R_walkable")
+#: Counts per room (means over scenes), printed as numbers, not percentages.
+PER_ROOM = ("out_of_bound / room", "objects / room", "ground_objects / room")
 
 
 @dataclass
@@ -58,13 +64,16 @@ def _terms(scene: dict, metric: str, where: str) -> tuple[float, float]:
         return scene["R_walkable"], 1.0
     if metric.startswith("task_"):
         return float(scene["tasks"][metric[5:]]), 1.0
-    raise ValueError(f"unknown metric {metric!r}; choose from {', '.join(COMPARED)} or task_<name>")
+    if metric in PER_ROOM:
+        key = metric.split(" / ")[0]
+        return float(len(scene[key]) if key == "out_of_bound" else scene[key]), 1.0
+    raise ValueError(f"unknown metric {metric!r}; choose from {', '.join(COMPARED + PER_ROOM)} or task_<name>")
 
 
 def _metrics(reports: Sequence[dict]) -> list[str]:
     tasks = [set(s.get("tasks", {})) for r in reports for s in r["per_scene"]]
     common = sorted(set.intersection(*tasks)) if tasks else []
-    return list(COMPARED) + [f"task_{t}" for t in common]
+    return list(COMPARED) + [f"task_{t}" for t in common] + list(PER_ROOM)
 
 
 def _per_floor(reports: Sequence[dict], ids: list[str], metric: str, side: str) -> np.ndarray:
@@ -118,7 +127,8 @@ def changes_table(changes: Sequence[Change], n_scenes: int, n_pairs: int) -> str
     lines = [f"{n_scenes} scenes a side over {n_pairs} report pair(s); 90% interval: floor-level bootstrap",
              "", "| metric | base | run | change | 90% interval |", "|---|---:|---:|---:|---|"]
     for c in changes:
-        fmt = (lambda v: f"{v:.3f}") if c.metric == "R_walkable" else (lambda v: f"{100 * v:.2f}%")
+        as_number = c.metric == "R_walkable" or c.metric in PER_ROOM
+        fmt = (lambda v: f"{v:.3f}") if as_number else (lambda v: f"{100 * v:.2f}%")
         if np.isfinite(c.change):
             change, interval = f"{100 * c.change:+.1f}%", f"{100 * c.low:+.1f}% to {100 * c.high:+.1f}%"
         else:  # a base rate of 0

@@ -55,6 +55,21 @@ def test_a_real_fall_has_an_interval_below_zero(tmp_path, capsys):
     assert "| Col_obj | 100.00% | 25.00% | -75.0% |" in printed and "| R_out | 0.00% | 0.00% | n/a |" in printed
 
 
+def test_counts_per_room_show_a_rate_moved_by_its_denominator(tmp_path, capsys):
+    """A pendant lamp added to every room lowers R_out by a third while the wardrobe stays through the wall:
+    the per-room counts show it (out of bound unchanged, objects up, ground objects unchanged)."""
+    wall = [box("wardrobe", 0.2, 1.5, 0.5, 0.3), box("cabinet", 2.8, 1.5, 0.5, 0.3)]  # the wardrobe pokes out
+    lamp = ("pendant_lamp", (2.0, 2.5, 1.5), (0.2, 0.2, 0.2), 0.0)
+    base = evaluate(tmp_path, [make_layout(wall, id=f"room_{i}") for i in range(20)], "base")
+    run = evaluate(tmp_path, [make_layout(wall + [lamp], id=f"room_{i}") for i in range(20)], "run")
+    assert main(["compare", "--base", str(base), "--run", str(run), "--boot", "200"]) == 0
+    printed = capsys.readouterr().out
+    assert "| R_out | 50.00% | 33.33% | -33.3% |" in printed
+    assert "| out_of_bound / room | 1.000 | 1.000 | +0.0% |" in printed
+    assert "| objects / room | 2.000 | 3.000 | +50.0% |" in printed
+    assert "| ground_objects / room | 2.000 | 2.000 | +0.0% |" in printed
+
+
 def test_user_errors_are_clear(tmp_path, capsys):
     base = evaluate(tmp_path, pairs(4, apart=0), "base")
     other = evaluate(tmp_path, pairs(5, apart=0), "other")
