@@ -179,14 +179,20 @@ def _count_distribution(stats: DatasetStats | None, distribution, n: int) -> np.
 @register_reward("object_count")
 @single_thread()
 def object_count_reward(batch: SceneBatch, stats: DatasetStats | None = None, count_distribution=None,
-                        mode: str = "kl", eps: float = 1e-4) -> torch.Tensor:
+                        mode: str = "kl", eps: float = 1e-4, ground_only: bool = False) -> torch.Tensor:
     """Object-count prior: ``-KL(batch || training)`` for every scene (``mode="kl"``), the training
     log-probability of each scene's count (``mode="log_prob"``) or its per-scene score
-    ``log(p_train(n) / p_batch(n))`` (``mode="match"``)."""
+    ``log(p_train(n) / p_batch(n))`` (``mode="match"``). With ``ground_only`` it counts the furniture
+    (ground objects) alone, against ``count_distribution`` (the training rooms' furniture counts, which the
+    statistics do not hold): a lamp, which never collides, then cannot stand in for a removed nightstand."""
     if mode not in ("kl", "log_prob", "match"):
         raise ValueError(f"object_count mode must be 'kl', 'log_prob' or 'match', not {mode!r}")
+    if ground_only and count_distribution is None:
+        raise ValueError("object_count with ground_only needs count_distribution=[p0, p1, ...], the share of "
+                         "training rooms with 0, 1, 2, ... ground objects (the statistics count every object)")
     train = _count_distribution(stats, count_distribution, batch.num_slots)
-    counts = np.clip(batch.mask.sum(1).cpu().numpy(), 0, len(train) - 1)
+    counted = batch.ground_mask if ground_only else batch.mask
+    counts = np.clip(counted.sum(1).cpu().numpy(), 0, len(train) - 1)
     p_train = (train + eps) / (train + eps).sum()
     if mode == "log_prob":
         return _out(np.log(p_train)[counts], batch)

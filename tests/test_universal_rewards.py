@@ -113,6 +113,21 @@ def test_object_count_prior_kl_and_log_prob():
         object_count_reward(SceneBatch.from_layouts(train[:2]))
 
 
+def test_object_count_ground_only_counts_furniture_so_a_lamp_cannot_replace_a_nightstand():
+    bed, stand = box("double_bed", 2.0, 1.5, 1.0, 1.0), box("nightstand", 3.3, 0.8, 0.25, 0.25)
+    lamp = ("pendant_lamp", (2.0, 2.5, 1.5), (0.2, 0.2, 0.2), 0.0)
+    kept, swapped = make_layout([bed, stand]), make_layout([bed, lamp])  # two objects each; one piece of furniture
+    scenes = SceneBatch.from_layouts([kept, swapped], num_slots=6)
+    two = [0.0, 0.1, 0.9]  # training rooms: mostly two objects (or two pieces of furniture)
+    every = object_count_reward(scenes, count_distribution=two, mode="log_prob")
+    assert every[0] == every[1]  # counting every object, the swap is free
+    furniture = object_count_reward(scenes, count_distribution=two, mode="log_prob", ground_only=True)
+    assert furniture[0].item() == pytest.approx(np.log(0.9), abs=1e-3)
+    assert furniture[1] < furniture[0] - 2.0  # log(0.1 / 0.9)
+    with pytest.raises(ValueError, match="ground_only needs count_distribution"):
+        object_count_reward(scenes, stats=DatasetStats.from_layouts([kept]), ground_only=True)
+
+
 def test_class_presence_prior_is_the_bernoulli_log_likelihood_of_the_classes_present():
     bed, stand = box("double_bed", 0.0, 0.0, 1.0, 1.1), box("nightstand", 1.4, -0.8, 0.25, 0.25)
     train = [make_layout([bed, stand])] * 3 + [make_layout([stand])]
