@@ -3,7 +3,8 @@
 
     .venv/bin/python benchmarks/class_counts.py prior=out/eval/X/prior.json stage2=out/eval/X/stage2.json
 
-Each argument is ``NAME=FILE`` (or a file, named by its stem): a neutral-JSON scene file of one room type.
+Each argument is ``NAME=FILE`` (or a file, named by its stem): a neutral-JSON scene file of one room type;
+``NAME=FILE,FILE,...`` pools several (e.g. one per sampling seed) into one column.
 Rows: every class with at least ``--min`` objects per room in some file, then beds of any kind per room,
 the share of rooms with a bed, and objects per room. ``--sizes MIN`` adds a second table, for each class
 with at least MIN objects per room in the first file: the median footprint (m^2), bottom height (m) and
@@ -101,7 +102,7 @@ def _size_cell(size) -> str:
 
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    p.add_argument("files", nargs="+", help="NAME=FILE or FILE (neutral-JSON scenes)")
+    p.add_argument("files", nargs="+", help="NAME=FILE, NAME=FILE,FILE,... (pooled) or FILE (neutral-JSON scenes)")
     p.add_argument("--min", type=float, default=0.02, help="smallest objects per room of a class to list")
     p.add_argument("--sizes", type=float, default=None, metavar="MIN",
                    help="also list median footprints, bottom and top heights, and the share off the floor, of the "
@@ -113,7 +114,7 @@ def main(argv=None) -> int:
     for item in args.files:
         name, _, path = item.rpartition("=")
         name = name or Path(path).stem
-        files[name] = layouts = load_layouts(path, num_scenes=0)
+        files[name] = layouts = [lay for part in path.split(",") for lay in load_layouts(part, num_scenes=0)]
         rows[name] = class_counts(layouts)
         sizes[name] = class_sizes(layouts)
     summary = ["bed (any)", "rooms with a bed %", "objects"]

@@ -24,7 +24,7 @@ from iarcs_env.datasets import load_layouts
 from iarcs_env.datasets.procedural import generate_layouts
 from iarcs_env.env import default_floors
 from iarcs_env.scene import SceneBatch
-from iarcs_env.tasks import TASKS
+from iarcs_env.tasks import TASKS, beside_head_half
 
 
 def relation_row(scenes: SceneBatch) -> dict:
@@ -57,9 +57,8 @@ def nightstands_beside_head(scenes: SceneBatch, bed: torch.Tensor, nightstand: t
     if len(b) == 0:
         return np.nan
     i = nearest[b, j]
-    lateral, forward = offset[b, i, j, 0].abs(), offset[b, i, j, 1]
-    half_width, half_depth = scenes.half_sizes[b, i, 0].double(), scenes.half_sizes[b, i, 2].double()
-    beside = (forward >= -half_depth) & (forward <= 0) & (lateral > half_width) & (lateral <= half_width + 0.5)
+    half = scenes.half_sizes[b, i].double()
+    beside = beside_head_half(offset[b, i, j, 0], offset[b, i, j, 1], half[:, 0], half[:, 2])
     return 100 * float(beside.double().mean())
 
 

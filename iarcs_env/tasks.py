@@ -120,6 +120,16 @@ def check_study_zone(batch: SceneBatch) -> np.ndarray:
     return _out(ok.flatten(1).any(1))
 
 
+def beside_head_half(lateral: torch.Tensor, forward: torch.Tensor, half_width: torch.Tensor,
+                     half_depth: torch.Tensor) -> torch.Tensor:
+    """Where two_nightstands wants a nightstand: its centre at (``lateral``, ``forward``) in a bed's frame lies
+    along the bed's head half and 0 to 0.5 m out from its side (either side: the sign of ``lateral`` says
+    which)."""
+    side = lateral.abs()
+    return ((forward >= -half_depth - EPS) & (forward <= EPS) & (side > half_width)
+            & (side <= half_width + 0.5 + EPS))
+
+
 @single_thread()
 def check_two_nightstands(batch: SceneBatch) -> np.ndarray:
     """two_nightstands: one bed with a nightstand left and one right of its head half, each centre 0-0.5 m
@@ -127,11 +137,9 @@ def check_two_nightstands(batch: SceneBatch) -> np.ndarray:
     t, h, y = _geometry(batch)
     off = rel.local_offset(t[..., [0, 2]], y)  # nightstand j in bed i's frame
     lat, fwd = off[..., 0], off[..., 1]
-    half_w, half_d = h[..., 0][:, :, None], h[..., 2][:, :, None]
-    head = (fwd >= -half_d - EPS) & (fwd <= EPS) & _pairs(batch, _mask(batch, "bed"), _mask(batch, "nightstand"))
-    left = head & (lat > half_w) & (lat <= half_w + 0.5 + EPS)
-    right = head & (-lat > half_w) & (-lat <= half_w + 0.5 + EPS)
-    return _out((left.any(2) & right.any(2)).any(1))
+    beside = (beside_head_half(lat, fwd, h[..., 0][:, :, None], h[..., 2][:, :, None])
+              & _pairs(batch, _mask(batch, "bed"), _mask(batch, "nightstand")))
+    return _out(((beside & (lat > 0)).any(2) & (beside & (lat < 0)).any(2)).any(1))
 
 
 #: Wheelchair task: agent radius for 0.9 m wide paths, turning-circle radius, distance to the bed (m).

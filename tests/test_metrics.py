@@ -299,6 +299,8 @@ def test_class_counts_per_room_and_rooms_with_a_bed(tmp_path, capsys):
     lines = capsys.readouterr().out.splitlines()
     assert lines[0] == "| per room | before | b |"
     assert "| double_bed | 0.25 | 0.00 |" in lines and "| rooms with a bed % | 50.0 | 0.0 |" in lines
+    assert script.main([f"both={tmp_path / 'a.json'},{tmp_path / 'b.json'}"]) == 0  # pooled: 6 rooms, 1 double bed
+    assert "| double_bed | 0.17 |" in capsys.readouterr().out.splitlines()
     # sizes: the double bed is 2 x 2 m and 0.8 m high on the floor; nightstands 0.5 x 0.5 m; one floats 0.3 m up
     assert script.class_sizes(rooms)["double_bed"] == pytest.approx((4.0, 0.0, 0.8, 0.0))
     floating = make_layout([box("nightstand", 2.8, 1.5, 0.25, 0.25, y0=0.3)] * 3)
