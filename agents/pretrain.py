@@ -365,6 +365,16 @@ class TrainResult:
     seconds: float = 0.0
 
 
+def training_split(layouts: Sequence[Layout], cfg: PretrainConfig) -> tuple[list[Layout], list[Layout]]:
+    """(training, validation) rooms: a permutation of ``data_seed`` holds out ``val_scenes`` (at most a tenth),
+    after dropping rooms with more objects than the room type has slots."""
+    spec = get_room(cfg.room)
+    layouts = [l for l in layouts if len(l) <= spec.max_objects]
+    order = np.random.default_rng(cfg.data_seed).permutation(len(layouts))
+    n_val = min(cfg.val_scenes, len(layouts) // 10)
+    return [layouts[i] for i in order[n_val:]], [layouts[i] for i in order[:n_val]]
+
+
 def load_init_prior(cfg: PretrainConfig) -> ScenePrior:
     """The checkpoint ``cfg.init_from`` names, checked to fit the run's room and architecture."""
     where = f"init_from {cfg.init_from!r}"
@@ -435,11 +445,7 @@ def train(cfg: PretrainConfig, layouts: Sequence[Layout] | None = None, max_step
     # data
     if layouts is None:
         layouts = load_training_layouts(cfg, log)
-    layouts = [l for l in layouts if len(l) <= spec.max_objects]
-    order = np.random.default_rng(cfg.data_seed).permutation(len(layouts))
-    n_val = min(cfg.val_scenes, len(layouts) // 10)
-    val_layouts = [layouts[i] for i in order[:n_val]]
-    train_layouts = [layouts[i] for i in order[n_val:]]
+    train_layouts, val_layouts = training_split(layouts, cfg)
     if saved is not None:
         stats = DatasetStats.from_json(saved["stats"], spec.name)
         if (stats.translation_frame == "room") != cfg.denoiser_config().room_frame:

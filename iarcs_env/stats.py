@@ -27,7 +27,9 @@ class DatasetStats:
 
     ``bounds_translations`` and ``bounds_sizes`` are ``[min_x, min_y, min_z, max_x, max_y, max_z]``;
     ``bounds_angles`` is ``[min, max]``; ``object_count_histogram[k]`` counts rooms with k objects;
-    ``class_presence[c]`` is the fraction of rooms with at least one object of class c.
+    ``class_presence[c]`` is the fraction of rooms with at least one object of class c;
+    ``class_sizes[c]`` is ``{"log_mean": [x, y, z], "log_std": [x, y, z]}``, the mean and standard deviation
+    of the logarithm of class c's half-sizes (classes with at least two objects; the ``object_size`` reward).
 
     ``translation_frame`` says how the model features scale the floor-plane translations (x, z):
     ``"room"`` divides each object's centre by its free half-range in its room, the floor's bounding-box
@@ -46,6 +48,7 @@ class DatasetStats:
     object_count_histogram: list[int] = field(default_factory=list)
     class_presence: dict[str, float] = field(default_factory=dict)
     translation_frame: str = "room"
+    class_sizes: dict[str, dict[str, list[float]]] = field(default_factory=dict)
 
     def __post_init__(self):
         if self.translation_frame not in TRANSLATION_FRAMES:
@@ -106,6 +109,7 @@ class DatasetStats:
             count_furniture={c: int(counter.get(c, 0)) for c in spec.classes},
             object_count_histogram=[int(v) for v in hist],
             class_presence={c: present.get(c, 0) / len(layouts) for c in spec.classes},
+            class_sizes=_class_sizes(np.array(labels), s),
         )
 
     # --- dataset_stats.txt ------------------------------------------------------------------------------
@@ -124,6 +128,7 @@ class DatasetStats:
             "object_count_histogram": self.object_count_histogram,
             "class_presence": self.class_presence,
             "translation_frame": self.translation_frame,
+            "class_sizes": self.class_sizes,
         }
 
     @classmethod
@@ -145,6 +150,8 @@ class DatasetStats:
             object_count_histogram=[int(v) for v in data.get("object_count_histogram", [])],
             class_presence={k: float(v) for k, v in data.get("class_presence", {}).items()},
             translation_frame=data.get("translation_frame", "dataset"),  # files from before the field
+            class_sizes={k: {m: [float(x) for x in v[m]] for m in ("log_mean", "log_std")}
+                         for k, v in data.get("class_sizes", {}).items()},
         )
 
     def save(self, path: str | Path) -> None:
@@ -160,6 +167,16 @@ class DatasetStats:
         except json.JSONDecodeError as err:
             raise ValueError(f"{path} is not JSON dataset statistics ({err})") from None
         return cls.from_json(data, room_type)
+
+
+def _class_sizes(labels: np.ndarray, half_sizes: np.ndarray) -> dict[str, dict[str, list[float]]]:
+    """Mean and standard deviation of log half-sizes for each class with at least two objects."""
+    out = {}
+    for c in sorted(set(labels.tolist())):
+        logs = np.log(np.maximum(half_sizes[labels == c], 1e-4))
+        if len(logs) >= 2:
+            out[c] = {"log_mean": [float(v) for v in logs.mean(0)], "log_std": [float(v) for v in logs.std(0)]}
+    return out
 
 
 def _guess_room(class_labels: Sequence[str]) -> str:

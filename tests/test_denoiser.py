@@ -384,3 +384,4 @@ def test_environment_default_stats_are_the_shipped_priors(room):
     assert stats.bounds_sizes == pytest.approx(prior.stats.bounds_sizes)
     assert stats.class_presence == pytest.approx(prior.stats.class_presence)
     assert stats.translation_frame == prior.stats.translation_frame
+    assert stats.class_sizes and stats.class_sizes == prior.stats.class_sizes

@@ -13,7 +13,7 @@ from iarcs_env.scene import SceneBatch
 from iarcs_env.stats import DatasetStats
 from rewards import (REWARDS, CompositeReward, accessibility_reward, boundary_reward, class_frequency_reward,
                      class_presence_reward, collision_reward, floor_contact_reward, object_count_reward,
-                     register_reward, required_class_reward, wall_alignment_reward)
+                     object_size_reward, register_reward, required_class_reward, wall_alignment_reward)
 from scene_factory import L_SHAPE, box, make_layout, random_layouts
 
 
@@ -232,6 +232,45 @@ def test_class_frequency_scores_each_object_against_the_batch_and_training_share
     assert r.sum().item() == pytest.approx(-6 * kl, rel=1e-5)
     with pytest.raises(ValueError, match="class_frequencies"):
         class_frequency_reward(SceneBatch.from_layouts(lamps), class_frequencies={"sofa_bed": 1.0})
+
+
+def _bed(log_half_size: float, x: float = 0.0):
+    h = float(np.exp(log_half_size))
+    return ("double_bed", (x, h, 0.0), (h, h, h), 0.0)
+
+
+def test_object_size_scores_each_object_against_the_training_and_batch_sizes():
+    sizes = {"double_bed": {"log_mean": [0.0] * 3, "log_std": [0.1] * 3}}
+    stand = box("nightstand", 1.5, 1.0, 0.25, 0.25)  # a class without training sizes: scores 0
+    # beds at the training mean and spread (log half-sizes +-0.1): every score is 0
+    typical = batch(make_layout([_bed(0.1), stand]), make_layout([_bed(-0.1)]))
+    np.testing.assert_allclose(object_size_reward(typical, class_sizes=sizes).numpy(), 0.0, atol=1e-5)
+    # shrunk beds (-0.1, -0.3; the batch's mean -0.2, spread 0.1): the bed 3 training deviations small pays
+    # 3 axes x (z^2 / 2 under the batch - z^2 / 2 under the training sizes) = 3 x (1/2 - 9/2)
+    shrunk = batch(make_layout([_bed(-0.1), stand]), make_layout([_bed(-0.3)]))
+    np.testing.assert_allclose(object_size_reward(shrunk, class_sizes=sizes).numpy(), [0.0, -12.0], atol=1e-4)
+    # deviations count up to max_z: z = -3 counts as -2
+    np.testing.assert_allclose(object_size_reward(shrunk, class_sizes=sizes, max_z=2.0).numpy(), [0.0, -4.5],
+                               atol=1e-4)
+    # a class with one object in the batch scores 0 (no batch spread to compare with)
+    assert object_size_reward(batch(make_layout([_bed(-0.5)])), class_sizes=sizes).item() == 0.0
+    with pytest.raises(ValueError, match="DatasetStats.from_layouts"):
+        object_size_reward(shrunk, stats=DatasetStats.from_json(
+            {"bounds_translations": [0] * 6, "bounds_sizes": [0] * 6}, "bedroom"))
+    with pytest.raises(ValueError, match="sofa_bed"):
+        object_size_reward(shrunk, class_sizes={"sofa_bed": sizes["double_bed"]})
+
+
+def test_statistics_hold_each_class_size_distribution_and_keep_it_through_json():
+    layouts = [make_layout([_bed(v, x=0.0), box("nightstand", 1.5, 1.0, 0.25, 0.25)]) for v in (0.1, 0.3)]
+    stats = DatasetStats.from_layouts(layouts)
+    np.testing.assert_allclose(stats.class_sizes["double_bed"]["log_mean"], [0.2] * 3)
+    np.testing.assert_allclose(stats.class_sizes["double_bed"]["log_std"], [0.1] * 3)
+    np.testing.assert_allclose(stats.class_sizes["nightstand"]["log_mean"], np.log([0.25, 0.4, 0.25]))
+    assert DatasetStats.from_json(stats.to_json()).class_sizes == stats.class_sizes
+    # the shipped priors' statistics were given their training rooms' sizes (experiments/add_class_sizes.py)
+    from iarcs_env.env import default_stats
+    assert default_stats("bedroom").class_sizes["double_bed"]["log_std"][2] == pytest.approx(0.0285, abs=1e-3)
 
 
 @pytest.mark.parametrize("seed", [0, 1])
