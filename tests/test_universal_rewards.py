@@ -245,13 +245,16 @@ def test_object_size_scores_each_object_against_the_training_and_batch_sizes():
     # beds at the training mean and spread (log half-sizes +-0.1): every score is 0
     typical = batch(make_layout([_bed(0.1), stand]), make_layout([_bed(-0.1)]))
     np.testing.assert_allclose(object_size_reward(typical, class_sizes=sizes).numpy(), 0.0, atol=1e-5)
-    # shrunk beds (-0.1, -0.3; the batch's mean -0.2, spread 0.1): the bed 3 training deviations small pays
-    # 3 axes x (z^2 / 2 under the batch - z^2 / 2 under the training sizes) = 3 x (1/2 - 9/2)
+    # shrunk beds (-0.1, -0.3; the batch's mean -0.2, spread 0.1): per axis, z^2 / 2 under the batch minus z^2 / 2
+    # under the training sizes, 0 for the bed 1 training deviation small, 1/2 - 9/2 for the one 3 deviations
+    # small; over 3 axes, centred on the class's mean (-6): +6 and -6
     shrunk = batch(make_layout([_bed(-0.1), stand]), make_layout([_bed(-0.3)]))
-    np.testing.assert_allclose(object_size_reward(shrunk, class_sizes=sizes).numpy(), [0.0, -12.0], atol=1e-4)
-    # deviations count up to max_z: z = -3 counts as -2
-    np.testing.assert_allclose(object_size_reward(shrunk, class_sizes=sizes, max_z=2.0).numpy(), [0.0, -4.5],
+    np.testing.assert_allclose(object_size_reward(shrunk, class_sizes=sizes).numpy(), [6.0, -6.0], atol=1e-4)
+    # deviations count up to max_z: z = -3 counts as -2 (3 x (1/2 - 2) = -4.5)
+    np.testing.assert_allclose(object_size_reward(shrunk, class_sizes=sizes, max_z=2.0).numpy(), [2.25, -2.25],
                                atol=1e-4)
+    # centred per class, the score does not pay for having fewer objects: its batch sum is 0
+    assert object_size_reward(shrunk, class_sizes=sizes).sum().item() == pytest.approx(0.0, abs=1e-4)
     # a class with one object in the batch scores 0 (no batch spread to compare with)
     assert object_size_reward(batch(make_layout([_bed(-0.5)])), class_sizes=sizes).item() == 0.0
     with pytest.raises(ValueError, match="DatasetStats.from_layouts"):
