@@ -27,7 +27,11 @@ Definitions (DESIGN.md, "Metric definitions"; used exactly):
   away from the walls, which no other metric sees.
 * Set-level statistics against a reference set: ``KL_class`` = KL(reference || generated) of the class
   frequencies (per object, smoothed with 1e-6); ``count_distance`` = earth mover's (1-Wasserstein)
-  distance between the object-count histograms, in objects; plus both mean counts.
+  distance between the object-count histograms, in objects; plus both mean counts; ``footprint_change``
+  (our addition) = the geometric mean of the footprint areas over the generated objects, class by class,
+  divided by the reference's, minus 1 (-0.14: footprints 14% smaller than the reference's objects of the same
+  classes), and ``footprint_change_by_class``. An RL adapter can shrink furniture to avoid collisions
+  and walls, which no other metric sees.
 
 All counts come from :func:`evaluate_batch` (one :class:`~iarcs_env.scene.SceneBatch` at a time, fully
 batched geometry from :mod:`iarcs_env.geometry`), which also keeps per-scene results (which objects
@@ -163,6 +167,26 @@ def class_kl(reference: Sequence[Layout], generated: Sequence[Layout], eps: floa
     return float(np.sum(p * np.log(p / q)))
 
 
+def footprint_change(reference: Sequence[Layout], generated: Sequence[Layout], min_objects: int = 5) -> dict:
+    """``{"all": r, "by_class": {label: r_c}}``: r_c the geometric-mean footprint area of the generated objects
+    of class c over the reference's, minus 1 (classes with ``min_objects`` objects in both), and r the same
+    over all of them, the log-ratios weighted by the generated objects' class counts (``by_class`` lists the
+    most frequent generated class first)."""
+    def log_areas(layouts):
+        out: dict[str, list[float]] = {}
+        for lay in layouts:
+            for label, h in zip(lay.labels, lay.half_sizes):
+                out.setdefault(label, []).append(float(np.log(max(4 * h[0] * h[2], 1e-8))))
+        return out
+
+    ref, gen = log_areas(reference), log_areas(generated)
+    shifts = {c: (float(np.mean(gen[c]) - np.mean(ref[c])), len(gen[c])) for c in sorted(gen, key=lambda c: -len(gen[c]))
+              if len(gen[c]) >= min_objects and len(ref.get(c, ())) >= min_objects}
+    total = sum(n for _, n in shifts.values())
+    overall = sum(d * n for d, n in shifts.values()) / total if total else 0.0
+    return {"all": float(np.expm1(overall)), "by_class": {c: float(np.expm1(d)) for c, (d, _) in shifts.items()}}
+
+
 def count_histogram(layouts: Sequence[Layout], max_count: int | None = None) -> np.ndarray:
     counts = np.array([len(lay) for lay in layouts], dtype=np.int64)
     n = max(int(counts.max(initial=0)), max_count or 0)
@@ -224,7 +248,7 @@ def evaluate_layouts(layouts: Sequence[Layout], reference: Sequence[Layout] | No
     ``n_ground_objects``),
     ``mean_objects`` and ``mean_ground_objects`` (per scene; the latter without ceiling and pendant lamps), and
     the grid settings. With a ``reference`` set: ``KL_class``, ``count_distance``,
-    ``reference_mean_objects``; with ``features`` too (``"cnn"`` or ``"clip:PATH"``, see
+    ``reference_mean_objects``, ``footprint_change`` and ``footprint_change_by_class``; with ``features`` too (``"cnn"`` or ``"clip:PATH"``, see
     :mod:`iarcs_env.distribution`): ``FID``, ``KID``, ``SCA`` and ``feature_extractor``. With
     ``keep_scenes``, ``"scenes"`` holds the :class:`SceneResult` list (``keep_masks`` adds the unreachable
     masks, in each layout's centred frame).
@@ -280,6 +304,8 @@ def evaluate_layouts(layouts: Sequence[Layout], reference: Sequence[Layout] | No
         out["KL_class"] = class_kl(reference, layouts)
         out["count_distance"] = count_distance(reference, layouts)
         out["reference_mean_objects"] = sum(len(lay) for lay in reference) / max(len(reference), 1)
+        change = footprint_change(reference, layouts)
+        out["footprint_change"], out["footprint_change_by_class"] = change["all"], change["by_class"]
         if features:
             from .distribution import distribution_metrics
 

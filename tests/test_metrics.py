@@ -11,7 +11,7 @@ import torch
 import shapely_reference as ref
 from iarcs_env import geometry as geo
 from iarcs_env.metrics import (HEADLINE, batch_float64, class_kl, count_distance, evaluate_batch,
-                               evaluate_layouts)
+                               evaluate_layouts, footprint_change)
 from scene_factory import L_SHAPE, RECT, box, make_layout, random_layouts
 from conftest import load_benchmark
 
@@ -195,6 +195,22 @@ def test_headline_keys_are_fractions_and_set_statistics():
     fewer = [make_layout([box("double_bed", 2, 1.5, 0.8, 1.0)])] * 12
     assert class_kl(layouts, fewer) > 1.0
     assert count_distance(layouts, fewer) == pytest.approx(np.mean([len(l) for l in layouts]) - 1)
+    assert out["footprint_change"] == pytest.approx(0.0, abs=1e-12)
+
+
+def test_footprint_change_is_the_geometric_mean_area_ratio_class_by_class():
+    def rooms(bed_half, stand_half, n=6):
+        return [make_layout([box("double_bed", 2, 1.5, bed_half, bed_half), box("nightstand", 0.5, 0.5, stand_half, stand_half),
+                             box("wardrobe", 3, 2.5, 0.3, 0.3)] if i else [box("double_bed", 2, 1.5, bed_half, bed_half)])
+                for i in range(n)]
+    reference = rooms(1.0, 0.25)
+    # beds 10% narrower and shorter (area x 0.81), nightstands unchanged, 5 wardrobes only in the reference
+    generated = [make_layout([box("double_bed", 2, 1.5, 0.9, 0.9), box("nightstand", 0.5, 0.5, 0.25, 0.25)])] * 6
+    change = footprint_change(reference, generated)
+    assert change["by_class"] == pytest.approx({"double_bed": -0.19, "nightstand": 0.0})
+    assert change["all"] == pytest.approx(np.sqrt(0.81) - 1)  # 6 beds and 6 nightstands: half the log-ratio
+    # a class needs min_objects on both sides: the wardrobes (5) count only with min_objects <= 5
+    assert "wardrobe" not in footprint_change(reference, reference, min_objects=6)["by_class"]
 
 
 def test_mixed_room_types_are_refused():

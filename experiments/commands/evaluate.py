@@ -182,6 +182,11 @@ def markdown_report(result: dict, name: str) -> str:
         lines.append(f"- reference: {result['n_reference_scenes']} scenes from `{result['reference_file']}` "
                      f"({result['reference_mean_objects']:.2f} objects per scene); object-count distance "
                      f"(earth mover's) {result['count_distance']:.3f}")
+        if "footprint_change" in result:
+            by_class = list(result["footprint_change_by_class"].items())[:4]  # the most frequent classes
+            lines.append(f"- footprints against the reference's objects of the same classes: "
+                         f"{100 * result['footprint_change']:+.1f}% (geometric mean; "
+                         + ", ".join(f"{c} {100 * v:+.1f}%" for c, v in by_class) + ")")
     if any(k.startswith("task_success_") for k in result):
         lines[4:4] = [task_table(result), ""]
     lines.append(f"- feature extractor: {result['feature_extractor']}")
