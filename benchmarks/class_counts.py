@@ -11,7 +11,8 @@ with at least MIN objects per room in the first file: the median footprint (m^2)
 top height (m), and the share of its objects more than 0.05 m off the floor (R_off_floor by class; – for
 ceiling and pendant lamps). It shows an adapter that changes sizes (a stage-2 run that lowers the beds), and
 one that moves furniture off the floor: furniture stands on it (bottom 0), so a bottom far from 0 is an
-object floating or sunk into the floor. ``--out-of-bound`` adds, for each file, which classes the objects out
+object floating or sunk into the floor; its last row is each file's ``footprint_change`` against the first
+file (:func:`iarcs_env.metrics.footprint_change`). ``--out-of-bound`` adds, for each file, which classes the objects out
 of the room (R_out's definition) are: per class its share of them and the share of its own objects that are
 out, and the median area outside (m^2) of all of them; then R_out by the number of corners of the floor
 (4: rectangles, 6: L-shaped rooms, ...).
@@ -29,7 +30,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from iarcs_env import geometry as geo  # noqa: E402
 from iarcs_env.datasets import load_layouts  # noqa: E402
-from iarcs_env.metrics import batch_float64  # noqa: E402
+from iarcs_env.metrics import batch_float64, footprint_change  # noqa: E402
 from iarcs_env.geometry import FLOOR_CONTACT_TOL  # noqa: E402
 from iarcs_env.rooms import CEILING_CLASSES  # noqa: E402
 
@@ -130,6 +131,10 @@ def main(argv=None) -> int:
               + "---|" * len(rows))
         for c in [c for c in classes if first.get(c, 0.0) >= args.sizes]:
             print(f"| {c} | " + " | ".join(_size_cell(size[c]) if c in size else "–" for size in sizes.values()) + " |")
+        reference = next(iter(files.values()))
+        changes = [footprint_change(reference, layouts) for layouts in files.values()]
+        print("| footprints against the first file's, all classes (geometric mean) | "
+              + " | ".join(f"{100 * ch['all']:+.1f}%" for ch in changes) + " |")
     if args.out_of_bound:
         for name, layouts in files.items():
             _print_out_of_bound(name, layouts)

@@ -327,6 +327,7 @@ def test_class_counts_per_room_and_rooms_with_a_bed(tmp_path, capsys):
     lines = capsys.readouterr().out.splitlines()
     assert "| double_bed | 4.00 / 0.00 / 0.80 / 0% | – |" in lines
     assert "| nightstand | 0.25 / 0.00 / 0.80 / 0% | 0.25 / 0.00 / 0.80 / 0% |" in lines
+    assert "| footprints against the first file's, all classes (geometric mean) | +0.0% | +0.0% |" in lines
 
 
 def test_class_counts_names_the_classes_of_the_objects_out_of_the_room(tmp_path, capsys):
