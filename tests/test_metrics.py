@@ -347,3 +347,30 @@ def test_class_counts_names_the_classes_of_the_objects_out_of_the_room(tmp_path,
     out = capsys.readouterr().out
     assert "l: 1 objects out of bound, median area outside 0.405 m^2" in out and "| wardrobe | 1.00 | 1 / 1 |" in out
     assert "| 6 | 1 | 0.500 |" in out
+
+
+def test_out_of_bound_remedies_move_shrink_or_delete_each_object_and_score_the_edits():
+    """benchmarks/out_of_bound_remedies.py: the wardrobe centred on the notch's edge of an L-shaped room comes
+    inside by a 0.46 m shift but by no shrink down to 30%; the nightstand 0.15 m through a wall by either."""
+    from iarcs_env.scene import SceneBatch
+    from rewards import CompositeReward
+
+    script = load_benchmark("out_of_bound_remedies")
+    room = make_layout([box("wardrobe", 3.0, 2.0, 0.5, 0.5), box("nightstand", 3.9, 1.0, 0.25, 0.25),
+                        box("double_bed", 1.0, 1.0, 0.5, 0.5)], floor=L_SHAPE)
+    batch = SceneBatch.from_layouts([room])
+    found = script.remedies(batch)
+    assert found["objects"] == [(0, 0), (0, 1)]
+    moved, ok = found["moved"]
+    assert ok.tolist() == [True, True]
+    assert (moved.translations[0, 0] - batch.translations[0, 0]).norm().item() == pytest.approx(0.46, abs=1e-5)
+    assert (moved.translations[1, 1] - batch.translations[0, 1]).norm().item() == pytest.approx(0.10, abs=1e-5)
+    shrunk, ok = found["shrunk"]
+    assert ok.tolist() == [False, True]
+    assert shrunk.half_sizes[1, 1, 0].item() == pytest.approx(0.25 * 0.6, abs=1e-5)  # 3.9 + 0.15 - 0.05 = 4
+    deleted, ok = found["deleted"]
+    assert ok.all() and deleted.mask.sum(1).tolist() == [2, 2]
+    result = script.score(CompositeReward({"boundary": 1.0}), batch, found)
+    assert result["shrunk"]["n"] == 1 and result["moved"]["n"] == 2
+    for edit in script.EDITS:  # every edit takes one of two objects out of the walls: the bonus stays out of reach
+        assert result[edit]["improved"] == 1.0 and result[edit]["terms"]["boundary"] > 0
