@@ -12,8 +12,8 @@ top height (m), and the share of its objects more than 0.05 m off the floor (R_o
 ceiling and pendant lamps). It shows an adapter that changes sizes (a stage-2 run that lowers the beds), and
 one that moves furniture off the floor: furniture stands on it (bottom 0), so a bottom far from 0 is an
 object floating or sunk into the floor; its last row is each file's ``footprint_change`` against the first
-file (:func:`iarcs_env.metrics.footprint_change`). ``--out-of-bound`` adds, for each file, which classes the objects out
-of the room (R_out's definition) are: per class its share of them and the share of its own objects that are
+file (:func:`iarcs_env.metrics.footprint_change`). ``--out-of-bound`` adds, for each file, which classes the
+objects out of the room (R_out's definition) are: per class its share of them and the share of its own objects that are
 out, and the median area outside (m^2) of all of them; then R_out by the number of corners of the floor
 (4: rectangles, 6: L-shaped rooms, ...).
 """

@@ -28,7 +28,8 @@ def main(argv=None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("checkpoint", help="prior checkpoint (.pt) to update in place")
     ap.add_argument("config", help="the pretraining config that made it (its dataset, data_seed and val_scenes)")
-    ap.add_argument("--stats", help="a statistics JSON file to give the same class sizes (e.g. iarcs_env/data/stats/bedroom.json)")
+    ap.add_argument("--stats", help="a statistics JSON file to give the same class sizes "
+                                    "(e.g. iarcs_env/data/stats/bedroom.json)")
     args = ap.parse_args(argv)
 
     state = torch.load(args.checkpoint, map_location="cpu", weights_only=False)

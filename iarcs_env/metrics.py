@@ -180,7 +180,8 @@ def footprint_change(reference: Sequence[Layout], generated: Sequence[Layout], m
         return out
 
     ref, gen = log_areas(reference), log_areas(generated)
-    shifts = {c: (float(np.mean(gen[c]) - np.mean(ref[c])), len(gen[c])) for c in sorted(gen, key=lambda c: -len(gen[c]))
+    frequent_first = sorted(gen, key=lambda c: -len(gen[c]))
+    shifts = {c: (float(np.mean(gen[c]) - np.mean(ref[c])), len(gen[c])) for c in frequent_first
               if len(gen[c]) >= min_objects and len(ref.get(c, ())) >= min_objects}
     total = sum(n for _, n in shifts.values())
     overall = sum(d * n for d, n in shifts.values()) / total if total else 0.0
@@ -248,8 +249,9 @@ def evaluate_layouts(layouts: Sequence[Layout], reference: Sequence[Layout] | No
     ``n_ground_objects``),
     ``mean_objects`` and ``mean_ground_objects`` (per scene; the latter without ceiling and pendant lamps), and
     the grid settings. With a ``reference`` set: ``KL_class``, ``count_distance``,
-    ``reference_mean_objects``, ``footprint_change`` and ``footprint_change_by_class``; with ``features`` too (``"cnn"`` or ``"clip:PATH"``, see
-    :mod:`iarcs_env.distribution`): ``FID``, ``KID``, ``SCA`` and ``feature_extractor``. With
+    ``reference_mean_objects``, ``footprint_change`` and ``footprint_change_by_class``; with ``features`` too
+    (``"cnn"`` or ``"clip:PATH"``, see :mod:`iarcs_env.distribution`): ``FID``, ``KID``, ``SCA`` and
+    ``feature_extractor``. With
     ``keep_scenes``, ``"scenes"`` holds the :class:`SceneResult` list (``keep_masks`` adds the unreachable
     masks, in each layout's centred frame).
     """

@@ -29,7 +29,8 @@ class DatasetStats:
     ``bounds_angles`` is ``[min, max]``; ``object_count_histogram[k]`` counts rooms with k objects;
     ``class_presence[c]`` is the fraction of rooms with at least one object of class c;
     ``class_sizes[c]`` is ``{"log_mean": [x, y, z], "log_std": [x, y, z]}``, the mean and standard deviation
-    of the logarithm of class c's half-sizes (classes with at least two objects; the ``object_size`` reward).
+    of the logarithm of class c's half-sizes (classes with at least two objects; the ``object_size``
+    reward).
 
     ``translation_frame`` says how the model features scale the floor-plane translations (x, z):
     ``"room"`` divides each object's centre by its free half-range in its room, the floor's bounding-box

@@ -200,9 +200,8 @@ def test_headline_keys_are_fractions_and_set_statistics():
 
 def test_footprint_change_is_the_geometric_mean_area_ratio_class_by_class():
     def rooms(bed_half, stand_half, n=6):
-        return [make_layout([box("double_bed", 2, 1.5, bed_half, bed_half), box("nightstand", 0.5, 0.5, stand_half, stand_half),
-                             box("wardrobe", 3, 2.5, 0.3, 0.3)] if i else [box("double_bed", 2, 1.5, bed_half, bed_half)])
-                for i in range(n)]
+        bed, stand = box("double_bed", 2, 1.5, bed_half, bed_half), box("nightstand", 0.5, 0.5, stand_half, stand_half)
+        return [make_layout([bed, stand, box("wardrobe", 3, 2.5, 0.3, 0.3)] if i else [bed]) for i in range(n)]
     reference = rooms(1.0, 0.25)
     # beds 10% narrower and shorter (area x 0.81), nightstands unchanged, 5 wardrobes only in the reference
     generated = [make_layout([box("double_bed", 2, 1.5, 0.9, 0.9), box("nightstand", 0.5, 0.5, 0.25, 0.25)])] * 6
