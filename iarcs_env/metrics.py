@@ -251,9 +251,8 @@ def evaluate_layouts(layouts: Sequence[Layout], reference: Sequence[Layout] | No
     the grid settings. With a ``reference`` set: ``KL_class``, ``count_distance``,
     ``reference_mean_objects``, ``footprint_change`` and ``footprint_change_by_class``; with ``features`` too
     (``"cnn"`` or ``"clip:PATH"``, see :mod:`iarcs_env.distribution`): ``FID``, ``KID``, ``SCA`` and
-    ``feature_extractor``. With
-    ``keep_scenes``, ``"scenes"`` holds the :class:`SceneResult` list (``keep_masks`` adds the unreachable
-    masks, in each layout's centred frame).
+    ``feature_extractor``. With ``keep_scenes``, ``"scenes"`` holds the :class:`SceneResult` list
+    (``keep_masks`` adds the unreachable masks, in each layout's centred frame).
     """
     layouts = one_room_type(layouts)
     totals = dict(objects=0, ground=0, colliding=0, scenes_colliding=0, out=0, off_floor=0, misaligned=0,
