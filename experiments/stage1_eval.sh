@@ -30,11 +30,14 @@ $IARCS compare --base "${BASE_REPORTS[@]}" --run "${RUN_REPORTS[@]}" --out "$OUT
 $PY - "$OUT" $SEEDS <<'PY'
 import sys
 from iarcs_env.datasets import load_layouts
-from iarcs_env.metrics import class_kl
+from iarcs_env.metrics import class_kl, footprint_change
 from iarcs_env.relations import BEDS
 out, seeds = sys.argv[1], sys.argv[2:]
 base, run = ([lay for s in seeds for lay in load_layouts(f"{out}/{name}_s{s}.json")] for name in ("base", "stage1"))
 print(f"\nseeds {' '.join(seeds)} pooled: class KL to the prior's samples {class_kl(base, run):.3f}")
+change = footprint_change(base, run)  # stage 1 can shrink the beds to clear walls and nightstands
+print(f"footprints against the prior's objects of the same classes {100 * change['all']:+.1f}% (geometric mean; "
+      + ", ".join(f"{c} {100 * v:+.1f}%" for c, v in list(change["by_class"].items())[:3]) + ")")
 for name, lays in (("prior", base), ("stage 1", run)):
     beds = sum(any(label in BEDS for label in lay.labels) for lay in lays) / len(lays)
     print(f"{name}: {sum(len(lay) for lay in lays) / len(lays):.2f} objects a room, a bed in {100 * beds:.1f}% of the rooms")
