@@ -40,11 +40,6 @@ def _out_area(translations, half_sizes, yaws, floor) -> torch.Tensor:
                                      torch.ones(n, 1, dtype=torch.bool), geo.OUT_OF_BOUND_SHRINK)[:, 0]
 
 
-def _subset(batch: SceneBatch, rows: list[int]) -> SceneBatch:
-    return SceneBatch(batch.spec, batch.labels[rows].clone(), batch.translations[rows].clone(),
-                      batch.half_sizes[rows].clone(), batch.yaws[rows].clone(), [batch.floors[i] for i in rows])
-
-
 def _appended(batch: SceneBatch, more: SceneBatch) -> SceneBatch:
     return SceneBatch(batch.spec, torch.cat([batch.labels, more.labels]),
                       torch.cat([batch.translations, more.translations]), torch.cat([batch.half_sizes, more.half_sizes]),
@@ -62,7 +57,7 @@ def remedies(batch: SceneBatch, step: float = 0.02, reach: float = 1.5) -> dict:
     shifts = torch.stack(torch.meshgrid(grid, grid, indexing="ij"), -1).reshape(-1, 2)
     shifts = shifts[shifts.norm(dim=1).argsort()]
     scales = torch.arange(0.98, 0.299, -0.02, dtype=batch.half_sizes.dtype)
-    edited = {name: _subset(batch, rows) for name in EDITS}
+    edited = {name: batch[rows] for name in EDITS}  # copies: a scene per out-of-bound object
     ok = {name: np.zeros(len(objects), bool) for name in EDITS}
     for k, (s, o) in enumerate(objects):
         t, h, yaw = batch.translations[s, o], batch.half_sizes[s, o], batch.yaws[s, o]
@@ -82,7 +77,7 @@ def remedies(batch: SceneBatch, step: float = 0.02, reach: float = 1.5) -> dict:
             ok["shrunk"][k] = True
         edited["deleted"].labels[k, o] = batch.spec.empty_index
         ok["deleted"][k] = True
-    return {"objects": objects, "original": _subset(batch, rows),
+    return {"objects": objects, "original": batch[rows],
             **{name: (edited[name], ok[name]) for name in EDITS}}
 
 
