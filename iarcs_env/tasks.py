@@ -120,14 +120,23 @@ def check_study_zone(batch: SceneBatch) -> np.ndarray:
     return _out(ok.flatten(1).any(1))
 
 
+def along_head_half(forward: torch.Tensor, half_depth: torch.Tensor) -> torch.Tensor:
+    """A centre ``forward`` metres ahead of a bed's centre (in its frame) lies along the bed's head half."""
+    return (forward >= -half_depth - EPS) & (forward <= EPS)
+
+
+def out_from_side(lateral: torch.Tensor, half_width: torch.Tensor) -> torch.Tensor:
+    """A centre ``lateral`` metres beside a bed's centre (either side) lies 0 to 0.5 m out from the bed's side."""
+    side = lateral.abs()
+    return (side > half_width) & (side <= half_width + 0.5 + EPS)
+
+
 def beside_head_half(lateral: torch.Tensor, forward: torch.Tensor, half_width: torch.Tensor,
                      half_depth: torch.Tensor) -> torch.Tensor:
     """Where two_nightstands wants a nightstand: its centre at (``lateral``, ``forward``) in a bed's frame lies
     along the bed's head half and 0 to 0.5 m out from its side (either side: the sign of ``lateral`` says
     which)."""
-    side = lateral.abs()
-    return ((forward >= -half_depth - EPS) & (forward <= EPS) & (side > half_width)
-            & (side <= half_width + 0.5 + EPS))
+    return along_head_half(forward, half_depth) & out_from_side(lateral, half_width)
 
 
 @single_thread()

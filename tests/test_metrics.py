@@ -293,6 +293,8 @@ def test_relation_fidelity_takes_two_nightstands_apart():
     row = script.relation_row(SceneBatch.from_layouts(rooms))
     assert row["bed and 2+ nightstands %"] == pytest.approx(100 / 3)
     assert row["nightstands beside the head half %"] == pytest.approx(50.0)  # 2 of the 4 in rooms with a bed
+    assert row["nightstands out from the side %"] == pytest.approx(100.0)  # the one at the foot is beside it too
+    assert row["nightstands along the head half %"] == pytest.approx(50.0)
     assert row["headboard to wall, median (m)"] == pytest.approx(0.05, abs=1e-5)
     assert row["two_nightstands %"] == pytest.approx(100 / 3)
 
