@@ -4,7 +4,8 @@ the headboard's midpoint from the wall behind it), where nightstands sit along t
 the five task success rates (hand-written checkers). two_nightstands is taken apart into its parts: rooms
 with a bed and at least two nightstands, and the share of nightstands (in rooms with a bed, measured from
 the nearest bed) that stand where the checker wants them, beside the head half within 0.5 m of the side,
-with its two parts: 0 to 0.5 m out from the side, and along the head half.
+with its two parts: 0 to 0.5 m out from the side, and along the head half; and how many of the nightstands
+next to a bed overlap it (which the collision metric counts).
 
     .venv/bin/python benchmarks/relation_fidelity.py                       # prior and shipped stage 1
     .venv/bin/python benchmarks/relation_fidelity.py --runs out/train/task_two_nightstands
@@ -20,6 +21,7 @@ import contextlib
 import numpy as np
 import torch
 
+from iarcs_env import geometry as geo
 from iarcs_env import relations as rel
 from iarcs_env.datasets import load_layouts
 from iarcs_env.datasets.procedural import generate_layouts
@@ -43,7 +45,8 @@ def relation_row(scenes: SceneBatch) -> dict:
            "headboard to wall, median (m)": float(back[bed].median()) if bed.any() else np.nan,
            "nightstand along bed (q1, median, q3)": ", ".join(f"{q:+.2f}" for q in quartiles),
            "bed and 2+ nightstands %": 100 * float((bed.any(1) & (nightstand.sum(1) >= 2)).float().mean()),
-           **nightstands_beside_head(scenes, bed, nightstand)}
+           **nightstands_beside_head(scenes, bed, nightstand),
+           "nightstands at a bed overlapping it %": nightstands_overlapping_bed(scenes, bed, nightstand)}
     row.update({f"{name} %": 100 * float(np.mean(task.check(scenes))) for name, task in TASKS.items()})
     return row
 
@@ -63,6 +66,17 @@ def nightstands_beside_head(scenes: SceneBatch, bed: torch.Tensor, nightstand: t
     side = out_from_side(offset[b, i, j, 0], half[:, 0])
     along = along_head_half(offset[b, i, j, 1], half[:, 2])
     return {key: 100 * float(part.double().mean()) for key, part in zip(keys, (side & along, side, along))}
+
+
+def nightstands_overlapping_bed(scenes: SceneBatch, bed: torch.Tensor, nightstand: torch.Tensor) -> float:
+    """Share (%) of the bed-nightstand pairs with footprints at most 0.3 m apart whose boxes overlap (a
+    collision of the Col_obj metric): the data tucks many nightstands slightly into the bed."""
+    near = bed[:, :, None] & nightstand[:, None, :]
+    near &= rel.footprint_gap(scenes.translations, scenes.half_sizes, scenes.yaws) <= 0.3
+    if not near.any():
+        return np.nan
+    volume = geo.box_overlap_volumes(scenes.translations, scenes.half_sizes, scenes.yaws, scenes.ground_mask)
+    return 100 * float((volume[near] > geo.COLLISION_VOLUME).double().mean())
 
 
 def main() -> None:

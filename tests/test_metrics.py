@@ -299,6 +299,19 @@ def test_relation_fidelity_takes_two_nightstands_apart():
     assert row["two_nightstands %"] == pytest.approx(100 / 3)
 
 
+def test_relation_fidelity_counts_nightstands_overlapping_their_bed():
+    """benchmarks/relation_fidelity.py: of the nightstands within 0.3 m of a bed, the share whose box overlaps it."""
+    from iarcs_env.scene import SceneBatch
+
+    script = load_benchmark("relation_fidelity")
+    bed = box("double_bed", 2.0, 1.05, 0.8, 1.0)  # x from 1.2 to 2.8
+    tucked = box("nightstand", 3.0, 0.5, 0.25, 0.2)  # x from 2.75: 5 cm into the bed
+    apart = box("nightstand", 0.9, 0.5, 0.2, 0.2)  # x up to 1.1: 10 cm from the bed
+    far = box("nightstand", 4.0, 0.5, 0.2, 0.2)  # 1 m away: not next to the bed
+    row = script.relation_row(SceneBatch.from_layouts([make_layout([bed, tucked, apart, far])]))
+    assert row["nightstands at a bed overlapping it %"] == pytest.approx(50.0)
+
+
 def test_class_counts_per_room_and_rooms_with_a_bed(tmp_path, capsys):
     """benchmarks/class_counts.py: what a run added or removed, class by class."""
     from iarcs_env.datasets import save_layouts
