@@ -60,8 +60,8 @@ batch's device. They are registered by name in :data:`REWARDS` (add your own wit
   objects of the class. The centring matters: uncentred, every object scores ``-KL`` on average, and stage 1
   halved the objects per room (3.9 -> 1.8) to score less of it. Without the term stage 1 shrinks furniture:
   smaller beds collide less and stick out of the room less (the shipped stage-1 adapter's double beds have
-  14.5% less footprint than the prior's); with it at weight 0.3
-  the beds keep their size and R_out no longer falls (docs/results/stage1_bedroom_quick.md).
+  14.5% less footprint than the prior's); with it at weight 0.3 the beds keep their size and R_out no longer
+  falls (docs/results/stage1_bedroom_quick.md).
 
 * ``required_class`` (our addition): 0 when the scene holds an object of ``classes`` (a group of
   ``iarcs_env.relations.CLASS_GROUPS`` such as ``"bed"``, or a list of classes), else -1. The content terms
