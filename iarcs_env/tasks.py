@@ -207,3 +207,42 @@ def task_results(task: str | Task, scenes: SceneBatch | Sequence[Layout], batch_
 def task_success(task: str | Task, scenes: SceneBatch | Sequence[Layout]) -> float:
     """Task success: the fraction of scenes (a batch or layouts) passing the task's check."""
     return float(task_results(task, scenes).mean())
+
+
+def sample_satisfying(sample: Callable[[list[int]], Sequence[Layout]], num_floors: int, task: str | Task,
+                      max_draws: int, batch_size: int = 64, progress: bool = True
+                      ) -> tuple[list[Layout | None], np.ndarray, np.ndarray]:
+    """Rejection sampling against a task's checker: every floor plan is sampled again, with fresh noise, until
+    a scene passes (as ``iarcs evaluate --task`` judges it), at most ``max_draws`` times.
+
+    ``sample(indices)`` returns one newly drawn scene per entry of ``indices`` (floor plan numbers, possibly
+    repeated), in order. When few floor plans are left, each gets several draws per round, so that a round
+    samples about ``batch_size`` scenes. Returns the first passing layout per floor plan (None where no draw
+    passed), and per floor plan the scenes drawn and the scenes that passed: passed.sum() / drawn.sum() is the
+    sampler's success rate on the draws made."""
+    from tqdm import tqdm
+
+    task = get_task(task)
+    if max_draws < 1:
+        raise ValueError(f"max_draws must be at least 1, got {max_draws}")
+    kept: list[Layout | None] = [None] * num_floors
+    drawn = np.zeros(num_floors, dtype=int)
+    passed = np.zeros(num_floors, dtype=int)
+    todo = list(range(num_floors))
+    with tqdm(total=num_floors, disable=not progress, desc=f"scenes passing {task.name}", unit="scene") as bar:
+        while todo and drawn[todo[0]] < max_draws:  # the floors left have all been drawn equally often
+            copies = min(max_draws - int(drawn[todo[0]]), -(-batch_size // len(todo)))
+            indices = [i for i in todo for _ in range(copies)]
+            layouts = list(sample(indices))
+            if len(layouts) != len(indices):
+                raise ValueError(f"sample() returned {len(layouts)} scenes for {len(indices)} floor plans")
+            ok = task_results(task, layouts)
+            np.add.at(drawn, indices, 1)
+            np.add.at(passed, indices, ok.astype(int))
+            for i, good, layout in zip(indices, ok, layouts):
+                if good and kept[i] is None:
+                    kept[i] = layout
+            bar.update(sum(kept[i] is not None for i in todo))
+            todo = [i for i in todo if kept[i] is None]
+            bar.set_postfix(drawn=int(drawn.sum()), success=f"{passed.sum() / drawn.sum():.1%}")
+    return kept, drawn, passed

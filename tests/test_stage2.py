@@ -7,6 +7,8 @@ import pytest
 import yaml
 
 from experiments.cli import main
+from iarcs_env.datasets import load_layouts
+from iarcs_env.tasks import task_results
 from rewards.memory import EvolutionMemory
 from rewards.proposal import RewardProposal
 from conftest import write_tiny_train_config
@@ -124,6 +126,15 @@ def test_generate_trains_once_then_reuses_the_adapter(tmp_path, monkeypatch, cap
     capsys.readouterr()
     assert main(args + ["--out", str(tmp_path / "b")]) == 0
     assert "reusing the adapter" in capsys.readouterr().out and not (tmp_path / "b" / "train").exists()
+    # rejection sampling with a checker the prior often passes (reach_1m), then with its own (two_nightstands)
+    assert main(args + ["--out", str(tmp_path / "c"), "--task", "reach_1m", "--only-satisfying"]) == 0
+    scenes = load_layouts(tmp_path / "c" / "scenes.json", "bedroom")
+    assert len(scenes) == 4 and task_results("reach_1m", scenes).all()
+    assert "holds only scenes that pass the reach_1m checker" in (tmp_path / "c" / "report.md").read_text()
+    capsys.readouterr()
+    assert main(args + ["--out", str(tmp_path / "d"), "--only-satisfying", "--max-draws", "1"]) == 2
+    assert "no scene passed two_nightstands in 1 draws" in capsys.readouterr().err
+    assert not (tmp_path / "d" / "scenes.json").exists()
 
 
 def test_the_demo_runs_end_to_end_on_a_tiny_budget(tmp_path):
@@ -159,3 +170,11 @@ def test_a_task_run_with_an_llm_agent_over_litellm_survives_a_failing_reflection
     assert usage["calls"] >= 2 and usage["prompt_tokens"] > 0 and usage["errors"] == 1
     assert any((run / "llm_cache").iterdir())
     assert (run / "reward" / "program.py").read_text() == entries[1]["proposal"]["code"]
+
+
+def test_generate_only_satisfying_needs_a_checker(tmp_path, monkeypatch, capsys):
+    monkeypatch.setenv("IARCS_HOME", str(tmp_path / "home"))
+    assert main(["generate", "--constraint", "A bedroom with a reading corner", "--only-satisfying",
+                 "--out", str(tmp_path / "g")]) == 2
+    assert "--only-satisfying needs a task checker" in capsys.readouterr().err
+    assert not (tmp_path / "home").exists()  # refused before any training

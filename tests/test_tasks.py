@@ -167,3 +167,56 @@ def test_evaluate_reports_task_success(tmp_path):
     args = parser.parse_args(["evaluate", "--scenes", str(tmp_path / "s.json"), "--out", str(out), "--task", "nope"])
     with pytest.raises(CLIError, match="unknown task 'nope'"):
         args.func(args)
+
+
+def test_sample_satisfying_keeps_the_first_passing_draw_and_counts_every_draw():
+    """Rejection sampling: floor 0 passes at once, floor 1 at its third draw, floor 2 never (a 2 m wardrobe
+    is a support surface above the 1.0 m limit of reach_1m)."""
+    from iarcs_env.tasks import sample_satisfying
+
+    low, tall = box("nightstand", 1.0, 1.0, 0.25, 0.25, hy=0.3), box("wardrobe", 1.0, 1.0, 0.5, 0.3, hy=1.0)
+    plans = {0: [low, low, low, low], 1: [tall, tall, low, tall], 2: [tall] * 4}
+    calls, used = [], {i: 0 for i in plans}
+
+    def sample(indices):
+        calls.append(list(indices))
+        out = []
+        for i in indices:
+            out.append(make_layout([plans[i][used[i]]], floor=ROOM_5, id=f"{i}:{used[i]}"))
+            used[i] += 1
+        return out
+
+    kept, drawn, passed = sample_satisfying(sample, 3, "reach_1m", max_draws=4, batch_size=1, progress=False)
+    assert [k.id if k else None for k in kept] == ["0:0", "1:2", None]
+    assert drawn.tolist() == [1, 3, 4] and passed.tolist() == [1, 1, 0]
+    assert calls == [[0, 1, 2], [1, 2], [1, 2], [2]]  # only the floors still without a passing scene
+
+    calls.clear(), used.update({i: 0 for i in plans})  # few floors left: several draws each per round
+    kept, drawn, passed = sample_satisfying(sample, 3, "reach_1m", max_draws=4, batch_size=6, progress=False)
+    assert [k.id if k else None for k in kept] == ["0:0", "1:2", None]
+    assert calls == [[0, 0, 1, 1, 2, 2], [1, 1, 2, 2]]
+    assert drawn.tolist() == [2, 4, 4] and passed.tolist() == [2, 1, 0]  # passed / drawn: the success rate
+    with pytest.raises(ValueError, match="max_draws must be at least 1"):
+        sample_satisfying(sample, 3, "reach_1m", max_draws=0)
+
+
+def test_cli_sample_satisfying_writes_only_passing_scenes(tmp_path, capsys):
+    """``iarcs sample --satisfying`` with the shipped prior: every written scene passes the checker."""
+    from experiments.cli import main
+
+    out = tmp_path / "s.json"
+    args = ["sample", "--room", "bedroom", "--num-scenes", "4", "--seed", "0", "--out", str(out)]
+    assert main(args + ["--satisfying", "reach_1m", "--max-draws", "40"]) == 0
+    data = json.loads(out.read_text())
+    info = data["meta"]["satisfying"]
+    assert info["task"] == "reach_1m" and info["floors"] == 4 and info["kept"] == len(data["scenes"]) == 4
+    assert info["drawn"] >= info["passed"] >= info["kept"]
+    assert task_results("reach_1m", load_layouts(out, "bedroom")).all()
+    assert f"{info['passed']} of the {info['drawn']} scenes drawn passed" in capsys.readouterr().out
+    assert main(args + ["--satisfying", "reach_2m"]) == 2
+    assert "--satisfying: unknown task 'reach_2m'" in capsys.readouterr().err
+    assert main(args + ["--satisfying", "reach_1m", "--max-draws", "0"]) == 2
+    assert "--max-draws must be a positive number" in capsys.readouterr().err
+    assert main(["sample", "--room", "livingroom", "--num-scenes", "2", "--out", str(out), "--satisfying",
+                 "reach_1m"]) == 2
+    assert "reach_1m is a bedroom task but --room is livingroom" in capsys.readouterr().err

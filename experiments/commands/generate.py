@@ -38,6 +38,11 @@ def register(sub) -> None:
                         "wheelchair); default: the paper task whose prompt equals the constraint, if any")
     p.add_argument("--epochs", type=int, default=100, help="stage-2 training epochs when no adapter exists (default 100)")
     p.add_argument("--retrain", action="store_true", help="train a new adapter even if the library has one")
+    p.add_argument("--only-satisfying", action="store_true",
+                   help="write only scenes that pass the task's checker (needs a paper task: --task or its prompt as "
+                        "the constraint): each floor plan is sampled again until one passes, at most --max-draws "
+                        "times; the report's table still measures the adapter's own samples")
+    p.add_argument("--max-draws", type=int, default=50, help="draws per floor plan with --only-satisfying (default 50)")
     add_agent_options(p)
     add_device_option(p, "training and sampling")
     p.set_defaults(func=cmd_generate)
@@ -91,17 +96,22 @@ def cmd_generate(args) -> int:
     from iarcs_env.datasets import save_layouts
     from iarcs_env.datasets.atiss import write_atiss_folder
     from iarcs_env.rooms import get_room
-    from iarcs_env.tasks import get_task
+    from iarcs_env.tasks import get_task, sample_satisfying
+
+    from .prior import satisfying_summary
 
     room = get_room(args.room).name
-    if args.num_scenes < 1 or args.epochs < 1:
-        raise CLIError("--num-scenes and --epochs must be positive")
+    if args.num_scenes < 1 or args.epochs < 1 or args.max_draws < 1:
+        raise CLIError("--num-scenes, --epochs and --max-draws must be positive")
     if not args.constraint.strip():
         raise CLIError('--constraint is empty; e.g. --constraint "A wheelchair-accessible bedroom"')
     device = resolve_device(args.device or "auto")  # a clear error before any work
     task = args.task or matching_task(args.constraint)
     if task:
         get_task(task)  # a clear error for an unknown name
+    elif args.only_satisfying:
+        raise CLIError("--only-satisfying needs a task checker, and this constraint is not a paper task's prompt; "
+                       "name the checker with --task (reach_1m, tv_from_bed, study_zone, two_nightstands, wheelchair)")
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     lib = library_dir(room, args.constraint)
@@ -128,16 +138,33 @@ def cmd_generate(args) -> int:
     floors = generation_floors(room, args.num_scenes, args.seed, args.floors)
     shown = floors[:COMPARED_SCENES]  # the comparison; every scene is sampled with the adapter
     rows = compare_variants(policy, shown, args.seed, variants, task)
-    if len(floors) > len(shown):
+    meta, filtered = {}, []
+    if args.only_satisfying:
+        policy.set_adapter("task")
+        gen = torch.Generator().manual_seed(args.seed + 1)  # not the comparison's draws again
+        sampled, drawn, passed = sample_satisfying(
+            lambda idx: policy.sample([floors[i] for i in idx], generator=gen).to_layouts(), len(floors), task,
+            args.max_draws)
+        layouts = [l for l in sampled if l is not None]
+        meta["satisfying"] = {"task": task, "max_draws": args.max_draws, "floors": len(floors), "kept": len(layouts),
+                              "drawn": int(drawn.sum()), "passed": int(passed.sum())}
+        filtered = ["", f"scenes.json holds only scenes that pass the {task} checker. "
+                    + satisfying_summary(meta["satisfying"]) + "."]
+        print(filtered[-1])
+        if not layouts:
+            raise CLIError(f"no scene passed {task} in {args.max_draws} draws on any of the {len(floors)} floor plans; "
+                           "nothing written (raise --max-draws, or train the adapter longer: --retrain --epochs N)")
+    elif len(floors) > len(shown):
         policy.set_adapter("task")
         layouts = policy.sample(floors, generator=torch.Generator().manual_seed(args.seed)).to_layouts()
     else:
         layouts = rows[-1]["layouts"]
-    save_layouts(layouts, out / "scenes.json", generator="iarcs generate", constraint=args.constraint, seed=args.seed)
+    save_layouts(layouts, out / "scenes.json", generator="iarcs generate", constraint=args.constraint, seed=args.seed,
+                 **meta)
     write_atiss_folder(layouts, out / "atiss")
     table, pictures = write_comparison(out, rows, task)
     proposal = json.loads((lib / "reward" / "proposal.json").read_text())
-    report = [f"# iarcs generate: {args.constraint}", "", *table, "", picture_table(rows, pictures), "",
+    report = [f"# iarcs generate: {args.constraint}", "", *table, *filtered, "", picture_table(rows, pictures), "",
               *program_section(proposal)]
     (out / "report.md").write_text("\n".join(report))
     print("3/3 results\n" + "\n".join(table))

@@ -36,6 +36,11 @@ def register(sub) -> None:
     p.add_argument("--eta", type=float, default=1.0, help="DDIM eta: 0 deterministic, 1 DDPM-like (default 1)")
     p.add_argument("--guidance", type=float, default=1.0, help="classifier-free guidance scale (default 1: none)")
     p.add_argument("--batch-size", type=int, default=256, help="scenes per sampling batch (default 256)")
+    p.add_argument("--satisfying", default=None, metavar="TASK",
+                   help="keep only scenes passing this paper task's checker (reach_1m, tv_from_bed, study_zone, "
+                        "two_nightstands, wheelchair): each floor plan is sampled again until one passes, at most "
+                        "--max-draws times; floor plans with no passing scene are left out (default: keep all)")
+    p.add_argument("--max-draws", type=int, default=50, help="draws per floor plan with --satisfying (default 50)")
     add_device_option(p, "the denoiser")
     p.set_defaults(func=cmd_sample)
 
@@ -90,6 +95,18 @@ def cmd_sample(args) -> int:
         raise CLIError(f"--steps must be at most 1000 (the training timesteps), got {args.steps}")
     if args.eta < 0:
         raise CLIError(f"--eta must be >= 0, got {args.eta}")
+    if args.max_draws < 1:
+        raise CLIError(f"--max-draws must be a positive number, got {args.max_draws}")
+    task = None
+    if args.satisfying:
+        from iarcs_env.tasks import get_task
+
+        try:
+            task = get_task(args.satisfying)
+        except ValueError as err:
+            raise CLIError(f"--satisfying: {err}") from None
+        if task.room != spec.name:
+            raise CLIError(f"--satisfying {task.name} is a {task.room} task but --room is {spec.name}")
     device = resolve_device(args.device or "auto")
 
     policy = None  # with an adapter: sample through the policy's eps (its reference's on the features it leaves)
@@ -134,20 +151,49 @@ def cmd_sample(args) -> int:
     ids = [f"{r.id or spec.name}:sample" if args.floors else f"{spec.name}_s{args.seed}_{i:05d}"
            for i, r in enumerate(sources)]
     gen = torch.Generator().manual_seed(args.seed)
-    batch = prior.sample(floors, num_steps=args.steps, eta=args.eta, generator=gen, guidance_scale=args.guidance,
-                         batch_size=args.batch_size, ids=ids, eps_fn=policy.eps if policy else None)
+
+    def draw(indices: list[int]):
+        """One scene for each of these floor plans (centred on the floor's bounding box, as the prior works)."""
+        return prior.sample([floors[i] for i in indices], num_steps=args.steps, eta=args.eta, generator=gen,
+                            guidance_scale=args.guidance, batch_size=args.batch_size, ids=[ids[i] for i in indices],
+                            eps_fn=policy.eps if policy else None).to_layouts()
+
+    meta = {"source": "iarcs sample", "room_type": spec.name, "checkpoint": str(args.checkpoint or
+            ScenePrior.default_path(spec.name).name), "seed": args.seed, "ddim_steps": args.steps,
+            "eta": args.eta, "guidance": args.guidance, "floors": args.floors or "procedural"}
+    if task is None:
+        sampled = draw(list(range(n)))
+    else:
+        from iarcs_env.tasks import sample_satisfying
+
+        sampled, drawn, passed = sample_satisfying(draw, n, task, args.max_draws, batch_size=args.batch_size)
+        meta["satisfying"] = {"task": task.name, "max_draws": args.max_draws, "floors": n,
+                              "kept": sum(l is not None for l in sampled), "drawn": int(drawn.sum()),
+                              "passed": int(passed.sum())}
     layouts = []
-    for lay, src in zip(batch.to_layouts(), sources):
-        # back to the floor plan's own frame (the prior works centred on the floor's bounding box)
+    for lay, src in zip(sampled, sources):
+        if lay is None:
+            continue
+        # back to the floor plan's own frame
         c = src.floor.centre
         t = lay.translations.copy()
         t[:, 0] += c[0]
         t[:, 2] += c[1]
         layouts.append(replace(lay, floor=src.floor, translations=t, ceiling_height=src.ceiling_height))
-    meta = {"source": "iarcs sample", "room_type": spec.name, "checkpoint": str(args.checkpoint or
-            ScenePrior.default_path(spec.name).name), "seed": args.seed, "ddim_steps": args.steps,
-            "eta": args.eta, "guidance": args.guidance, "floors": args.floors or "procedural"}
+    if task is not None:
+        print(satisfying_summary(meta["satisfying"]))
+        if not layouts:
+            raise CLIError(f"no scene passed {task.name} in {args.max_draws} draws on any of the {n} floor plans; "
+                           "nothing written (raise --max-draws, or sample an adapter trained for the task)")
     path = save_layouts(layouts, args.out, **meta)
     counts = np.array([len(l) for l in layouts])
     print(f"{len(layouts)} {spec.name} scenes ({counts.mean():.1f} objects on average) -> {path}")
     return 0
+
+
+def satisfying_summary(info: dict) -> str:
+    """One line on a rejection-sampled file: kept floors, draws and the acceptance rate."""
+    left = info["floors"] - info["kept"]
+    return (f"{info['task']}: {info['kept']} of {info['floors']} floor plans have a passing scene; {info['passed']} "
+            f"of the {info['drawn']} scenes drawn passed ({info['passed'] / info['drawn']:.1%})"
+            + (f"; {left} floor plan(s) had none in {info['max_draws']} draws and are left out" if left else ""))
