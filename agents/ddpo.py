@@ -78,6 +78,9 @@ class DDPOConfig:
     gradient of the physics penalty."""
     out_of_bound_weight: float = 1.0
     """``physics-gradient`` only: the weight of the out-of-bound area (m^2) next to the overlap volume (m^3)."""
+    elite_fraction: float = 0.25
+    """``raft`` only (agents/raft.py): the share of each rollout batch's scenes, best first by reward standardised
+    per floor plan, that the DDPM loss trains on."""
     kl_coef: float = 0.0
     """Weight of a KL penalty to the policy the adapter starts from (its reference adapter, e.g. stage 1 for a
     partial stage-2 adapter; else the prior, adapters disabled), against diversity collapse and drift."""
@@ -578,12 +581,12 @@ ALGORITHMS: dict[str, type[DDPO]] = {"DDPO-IS": DDPO, "DDPO-SF": DDPOSF}
 
 
 def get_algorithm(name: str) -> type[DDPO]:
-    """``ddpo`` / ``ddpo-is``, ``ddpo-sf`` or ``physics-gradient`` (case-insensitive)."""
+    """``ddpo`` / ``ddpo-is``, ``ddpo-sf``, ``physics-gradient`` or ``raft`` (case-insensitive)."""
     key = name.upper().replace("_", "-")
     key = {"DDPO": "DDPO-IS"}.get(key, key)
     if key not in ALGORITHMS:
-        raise ValueError(f"unknown algorithm {name!r}; choose one of: ddpo (= ddpo-is), ddpo-sf, physics-gradient")
+        raise ValueError(f"unknown algorithm {name!r}; choose one of: ddpo (= ddpo-is), ddpo-sf, physics-gradient, raft")
     return ALGORITHMS[key]
 
 
-from . import physics_gradient  # noqa: E402,F401  (registers PhysicsGradient in ALGORITHMS)
+from . import physics_gradient, raft  # noqa: E402,F401  (register PhysicsGradient and RAFT in ALGORITHMS)
