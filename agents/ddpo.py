@@ -81,6 +81,11 @@ class DDPOConfig:
     elite_fraction: float = 0.25
     """``raft`` only (agents/raft.py): the share of each rollout batch's scenes, best first by reward standardised
     per floor plan, that the DDPM loss trains on."""
+    anchor_data: str = ""
+    """``raft`` only: training rooms (``procedural``: the generator's, seed 0, as the shipped priors'; or a layout
+    file) mixed one for one into every DDPM minibatch, against the drift of training on its own samples."""
+    anchor_scenes: int = 2000
+    """``raft`` only: how many rooms of ``anchor_data`` are loaded."""
     kl_coef: float = 0.0
     """Weight of a KL penalty to the policy the adapter starts from (its reference adapter, e.g. stage 1 for a
     partial stage-2 adapter; else the prior, adapters disabled), against diversity collapse and drift."""

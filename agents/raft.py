@@ -23,13 +23,15 @@ from iarcs_env.scene import SceneBatch, floor_half_extents
 
 from . import distributed
 from .ddpo import ALGORITHMS, DDPO
+from .pretrain import SceneTensors, encode_batch
 
 
 class RewardRankedFineTuning(DDPO):
     """RAFT (module doc) with :class:`DDPO`'s surface. Uses ``elite_fraction``, ``timestep_fraction``,
     ``learning_rate``, ``minibatch_size`` (elite scenes per step), ``num_inner_epochs``, ``max_grad_norm`` and
     ``kl_coef`` (a KL penalty to the reference policy on ``minibatch_size`` of the rollout's transitions per
-    step, against the drift of training on its own samples) of :class:`~agents.ddpo.DDPOConfig`."""
+    step), ``anchor_data`` and ``anchor_scenes`` of :class:`~agents.ddpo.DDPOConfig`; the last three hold the
+    policy back from the drift of training on its own samples."""
 
     name = "RAFT"
 
@@ -37,6 +39,28 @@ class RewardRankedFineTuning(DDPO):
         super().__init__(policy, env, **kwargs)
         if not 0 < self.config.elite_fraction <= 1:
             raise ValueError(f"elite_fraction must be in (0, 1], got {self.config.elite_fraction}")
+        self.anchor = self._load_anchor() if self.config.anchor_data else None
+
+    def _load_anchor(self) -> SceneTensors:
+        """The ``anchor_data`` rooms as metric tensors (rooms with more objects than slots left out)."""
+        from iarcs_env.datasets import load_layouts
+
+        from .pretrain import resolve_dataset
+
+        spec, cfg = self.venv.stats.spec, self.config
+        layouts = load_layouts(resolve_dataset(cfg.anchor_data), spec.name, num_scenes=cfg.anchor_scenes, seed=0)
+        layouts = [l for l in layouts if len(l) <= spec.max_objects][:cfg.anchor_scenes]
+        if not layouts:
+            raise ValueError(f"anchor_data {cfg.anchor_data!r} holds no {spec.name} rooms with at most "
+                             f"{spec.max_objects} objects")
+        return SceneTensors.from_layouts(layouts, spec.max_objects)
+
+    def anchor_batch(self, count: int) -> tuple[torch.Tensor, torch.Tensor]:
+        """(x_0, floor features) of ``count`` random anchor rooms, rotated and with shuffled slots as in
+        pretraining."""
+        idx = torch.randint(len(self.anchor), (count,), generator=self.generator)
+        batch = self.anchor.batch(idx, self.generator, rotate=True, permute=True)
+        return encode_batch(self.venv.stats.spec, self.venv.stats, *batch)
 
     def elite_scenes(self, rollout: TensorDict) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """(x_0, floor features, indices in the rollout) of the top ``elite_fraction`` of the rollout's scenes by
@@ -63,7 +87,11 @@ class RewardRankedFineTuning(DDPO):
             perm = torch.randperm(len(x0), generator=self.generator)
             for start in range(0, len(x0), cfg.minibatch_size):
                 rows = perm[start:start + cfg.minibatch_size].repeat_interleave(levels)
-                x, f = x0[rows].to(self.device), floor[rows].to(self.device)
+                x, f = x0[rows], floor[rows]
+                if self.anchor is not None:
+                    x_data, f_data = self.anchor_batch(len(rows))
+                    x, f = torch.cat([x, x_data]), torch.cat([f, f_data])
+                x, f = x.to(self.device), f.to(self.device)
                 loss = schedule.training_loss(lambda x_t, t: self.policy.eps(x_t, t, f), x, self.generator)
                 info = {}
                 if cfg.kl_coef > 0:  # anchored to the reference policy on the rollout's own states

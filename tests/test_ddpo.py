@@ -263,6 +263,12 @@ def test_raft_fits_the_best_scenes_of_each_floor(tmp_path):
     rollout = anchored.collect_rollouts()
     infos = [anchored.train(rollout) for _ in range(3)]
     assert infos[0]["kl_to_base"] == 0 and infos[-1]["kl_to_base"] > 0  # the adapter starts as its reference
+    mixed = make_model(RewardRankedFineTuning, anchor_data="procedural", anchor_scenes=16)
+    assert len(mixed.anchor) == 16
+    x_data, f_data = mixed.anchor_batch(5)
+    assert x_data.shape == (5, *rollout["action"].shape[2:]) and f_data.shape == (5, *rollout["floor"].shape[2:])
+    assert ((x_data[..., 8:] == 1).sum(-1) == 1).all()  # training rooms, encoded as the prior was trained
+    assert mixed.train(mixed.collect_rollouts())["loss"] > 0
 
 
 def test_reward_spread_measures_the_spread_within_floor_groups():
