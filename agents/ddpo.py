@@ -78,14 +78,6 @@ class DDPOConfig:
     gradient of the physics penalty."""
     out_of_bound_weight: float = 1.0
     """``physics-gradient`` only: the weight of the out-of-bound area (m^2) next to the overlap volume (m^3)."""
-    elite_fraction: float = 0.25
-    """``raft`` only (agents/raft.py): the share of each rollout batch's scenes, best first by reward standardised
-    per floor plan, that the DDPM loss trains on."""
-    anchor_data: str = ""
-    """``raft`` only: training rooms (``procedural``: the generator's, seed 0, as the shipped priors'; or a layout
-    file) mixed one for one into every DDPM minibatch, against the drift of training on its own samples."""
-    anchor_scenes: int = 2000
-    """``raft`` only: how many rooms of ``anchor_data`` are loaded."""
     kl_coef: float = 0.0
     """Weight of a KL penalty to the policy the adapter starts from (its reference adapter, e.g. stage 1 for a
     partial stage-2 adapter; else the prior, adapters disabled), against diversity collapse and drift."""
@@ -586,12 +578,12 @@ ALGORITHMS: dict[str, type[DDPO]] = {"DDPO-IS": DDPO, "DDPO-SF": DDPOSF}
 
 
 def get_algorithm(name: str) -> type[DDPO]:
-    """``ddpo`` / ``ddpo-is``, ``ddpo-sf``, ``physics-gradient`` or ``raft`` (case-insensitive)."""
+    """``ddpo`` / ``ddpo-is``, ``ddpo-sf`` or ``physics-gradient`` (case-insensitive)."""
     key = name.upper().replace("_", "-")
     key = {"DDPO": "DDPO-IS"}.get(key, key)
     if key not in ALGORITHMS:
-        raise ValueError(f"unknown algorithm {name!r}; choose one of: ddpo (= ddpo-is), ddpo-sf, physics-gradient, raft")
+        raise ValueError(f"unknown algorithm {name!r}; choose one of: ddpo (= ddpo-is), ddpo-sf, physics-gradient")
     return ALGORITHMS[key]
 
 
-from . import physics_gradient, raft  # noqa: E402,F401  (register PhysicsGradient and RAFT in ALGORITHMS)
+from . import physics_gradient  # noqa: E402,F401  (registers PhysicsGradient in ALGORITHMS)

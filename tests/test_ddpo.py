@@ -13,7 +13,6 @@ from conftest import load_benchmark, perturb_zero_init
 from agents.callbacks import CheckpointCallback, EvalCallback, StopTrainingOnRewardThreshold
 from agents.ddpo import DDPO, DDPOSF, gae_advantages, get_algorithm
 from agents.physics_gradient import PhysicsGradient, physics_penalty
-from agents.raft import RewardRankedFineTuning
 from agents.denoiser import ScenePrior
 from agents.policy import DiffusionPolicy
 from iarcs_env.datasets.procedural import generate_layouts
@@ -226,49 +225,6 @@ def test_physics_gradient_lowers_the_penalty_of_its_rollouts_and_resumes_by_name
     assert type(resumed) is PhysicsGradient and resumed.config.gradient_steps == 2
     with pytest.raises(ValueError, match="gradient_steps must be at least 1"):
         make_model(PhysicsGradient, gradient_steps=0)
-
-
-def test_raft_fits_the_best_scenes_of_each_floor(tmp_path):
-    model = make_model(RewardRankedFineTuning, learning_rate=1e-2, minibatch_size=2, elite_fraction=0.25,
-                       timestep_fraction=1.0)
-    assert get_algorithm("raft") is RewardRankedFineTuning
-    rollout = model.collect_rollouts()
-    floor = rollout["floor_index"][:, 0]
-    assert floor[:4].unique().numel() == 1 and floor[4:].unique().numel() == 1 and floor[0] != floor[4]
-    # ranked within each floor: the best of the first floor (3) beats the second-best of the second (11)
-    rollout["reward"] = torch.tensor([0.0, 1, 2, 3, 10, 10.5, 11, 20])[:, None].expand(-1, STEPS)
-    x0, floor_features, elites = model.elite_scenes(rollout)
-    assert elites.tolist() == [7, 3]
-    torch.testing.assert_close(floor_features, rollout["floor"][[7, 3], 0])
-    classes = x0[..., 8:]
-    assert ((classes == 1) | (classes == -1)).all() and ((classes == 1).sum(-1) == 1).all()  # one-hot, cleaned
-
-    def loss():  # the DDPM loss of the elite scenes, with fixed noise and noise levels
-        g = torch.Generator().manual_seed(0)
-        x, f = x0.repeat_interleave(16, 0), floor_features.repeat_interleave(16, 0)
-        with torch.no_grad():
-            return float(model.policy.schedule.training_loss(lambda x_t, t: model.policy.eps(x_t, t, f), x, g))
-
-    before = loss()
-    for _ in range(25):
-        info = model.train(rollout)
-    assert loss() < 0.95 * before
-    assert info["elite_reward"] == pytest.approx((20 + 3) / 2) and info["loss"] > 0
-    model.save(tmp_path / "ckpt")
-    resumed = DDPO.load(tmp_path / "ckpt", DiffusionPolicy(tiny_prior(), num_steps=STEPS), make_env(), verbose=0)
-    assert type(resumed) is RewardRankedFineTuning and resumed.config.elite_fraction == 0.25
-    with pytest.raises(ValueError, match="elite_fraction must be in"):
-        make_model(RewardRankedFineTuning, elite_fraction=0.0)
-    anchored = make_model(RewardRankedFineTuning, learning_rate=1e-2, kl_coef=1.0)
-    rollout = anchored.collect_rollouts()
-    infos = [anchored.train(rollout) for _ in range(3)]
-    assert infos[0]["kl_to_base"] == 0 and infos[-1]["kl_to_base"] > 0  # the adapter starts as its reference
-    mixed = make_model(RewardRankedFineTuning, anchor_data="procedural", anchor_scenes=16)
-    assert len(mixed.anchor) == 16
-    x_data, f_data = mixed.anchor_batch(5)
-    assert x_data.shape == (5, *rollout["action"].shape[2:]) and f_data.shape == (5, *rollout["floor"].shape[2:])
-    assert ((x_data[..., 8:] == 1).sum(-1) == 1).all()  # training rooms, encoded as the prior was trained
-    assert mixed.train(mixed.collect_rollouts())["loss"] > 0
 
 
 def test_reward_spread_measures_the_spread_within_floor_groups():
