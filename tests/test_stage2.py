@@ -177,4 +177,7 @@ def test_generate_only_satisfying_needs_a_checker(tmp_path, monkeypatch, capsys)
     assert main(["generate", "--constraint", "A bedroom with a reading corner", "--only-satisfying",
                  "--out", str(tmp_path / "g")]) == 2
     assert "--only-satisfying needs a task checker" in capsys.readouterr().err
+    assert main(["generate", "--room", "livingroom", "--constraint", PROMPT, "--task", "two_nightstands",
+                 "--out", str(tmp_path / "g")]) == 2
+    assert "two_nightstands is a bedroom task but --room is livingroom" in capsys.readouterr().err
     assert not (tmp_path / "home").exists()  # refused before any training

@@ -98,7 +98,7 @@ def cmd_generate(args) -> int:
     from iarcs_env.rooms import get_room
     from iarcs_env.tasks import get_task, sample_satisfying
 
-    from .prior import satisfying_summary
+    from .prior import satisfying_info, satisfying_summary
 
     room = get_room(args.room).name
     if args.num_scenes < 1 or args.epochs < 1 or args.max_draws < 1:
@@ -108,7 +108,9 @@ def cmd_generate(args) -> int:
     device = resolve_device(args.device or "auto")  # a clear error before any work
     task = args.task or matching_task(args.constraint)
     if task:
-        get_task(task)  # a clear error for an unknown name
+        checker = get_task(task)  # a clear error for an unknown name
+        if checker.room != room:
+            raise CLIError(f"--task {checker.name} is a {checker.room} task but --room is {room}")
     elif args.only_satisfying:
         raise CLIError("--only-satisfying needs a task checker, and this constraint is not a paper task's prompt; "
                        "name the checker with --task (reach_1m, tv_from_bed, study_zone, two_nightstands, wheelchair)")
@@ -146,8 +148,7 @@ def cmd_generate(args) -> int:
             lambda idx: policy.sample([floors[i] for i in idx], generator=gen).to_layouts(), len(floors), task,
             args.max_draws)
         layouts = [l for l in sampled if l is not None]
-        meta["satisfying"] = {"task": task, "max_draws": args.max_draws, "floors": len(floors), "kept": len(layouts),
-                              "drawn": int(drawn.sum()), "passed": int(passed.sum())}
+        meta["satisfying"] = satisfying_info(task, args.max_draws, sampled, drawn, passed)
         filtered = ["", f"scenes.json holds only scenes that pass the {task} checker. "
                     + satisfying_summary(meta["satisfying"]) + "."]
         print(filtered[-1])

@@ -167,9 +167,7 @@ def cmd_sample(args) -> int:
         from iarcs_env.tasks import sample_satisfying
 
         sampled, drawn, passed = sample_satisfying(draw, n, task, args.max_draws, batch_size=args.batch_size)
-        meta["satisfying"] = {"task": task.name, "max_draws": args.max_draws, "floors": n,
-                              "kept": sum(l is not None for l in sampled), "drawn": int(drawn.sum()),
-                              "passed": int(passed.sum())}
+        meta["satisfying"] = satisfying_info(task.name, args.max_draws, sampled, drawn, passed)
     layouts = []
     for lay, src in zip(sampled, sources):
         if lay is None:
@@ -189,6 +187,12 @@ def cmd_sample(args) -> int:
     counts = np.array([len(l) for l in layouts])
     print(f"{len(layouts)} {spec.name} scenes ({counts.mean():.1f} objects on average) -> {path}")
     return 0
+
+
+def satisfying_info(task: str, max_draws: int, sampled: list, drawn, passed) -> dict:
+    """What a rejection-sampled file records of its sampling (:func:`iarcs_env.tasks.sample_satisfying`'s results)."""
+    return {"task": task, "max_draws": max_draws, "floors": len(sampled), "kept": sum(l is not None for l in sampled),
+            "drawn": int(drawn.sum()), "passed": int(passed.sum())}
 
 
 def satisfying_summary(info: dict) -> str:
