@@ -4,8 +4,9 @@ the headboard's midpoint from the wall behind it), where nightstands sit along t
 the five task success rates (hand-written checkers). two_nightstands is taken apart into its parts: rooms
 with a bed and at least two nightstands, and the share of nightstands (in rooms with a bed, measured from
 the nearest bed) that stand where the checker wants them, beside the head half within 0.5 m of the side,
-with its two parts: 0 to 0.5 m out from the side, and along the head half; and how many of the nightstands
-next to a bed overlap it (which the collision metric counts).
+with its two parts: 0 to 0.5 m out from the side, and along the head half; how far out from the side they
+stand (quartiles; negative: within the bed's width); and how many of the nightstands next to a bed overlap it
+(which the collision metric counts).
 
     .venv/bin/python benchmarks/relation_fidelity.py                       # prior and shipped stage 1
     .venv/bin/python benchmarks/relation_fidelity.py --runs out/train/task_two_nightstands
@@ -55,17 +56,20 @@ def nightstands_beside_head(scenes: SceneBatch, bed: torch.Tensor, nightstand: t
     """Shares (%) of the nightstands in rooms with a bed whose centre, in the nearest bed's frame, lies where
     two_nightstands wants it (along the head half, 0 to 0.5 m out from the bed's side), and of each part."""
     keys = ("nightstands beside the head half %", "nightstands out from the side %", "nightstands along the head half %")
+    gap_key = "nightstand out from the bed's side, m (q1, median, q3)"
     xz = scenes.translations[..., [0, 2]].double()
     offset = rel.local_offset(xz, scenes.yaws.double())  # [b, i, j]: j in i's frame
     nearest = rel.centre_distance(xz).masked_fill(~bed[:, :, None], float("inf")).argmin(1)  # [b, j] -> bed i
     b, j = torch.nonzero(nightstand & bed.any(1, keepdim=True), as_tuple=True)
     if len(b) == 0:
-        return dict.fromkeys(keys, np.nan)
+        return {**dict.fromkeys(keys, np.nan), gap_key: "-"}
     i = nearest[b, j]
     half = scenes.half_sizes[b, i].double()
     side = out_from_side(offset[b, i, j, 0], half[:, 0])
     along = along_head_half(offset[b, i, j, 1], half[:, 2])
-    return {key: 100 * float(part.double().mean()) for key, part in zip(keys, (side & along, side, along))}
+    gap = offset[b, i, j, 0].abs() - half[:, 0]  # < 0: within the bed's width (ahead of or behind it)
+    return {**{key: 100 * float(part.double().mean()) for key, part in zip(keys, (side & along, side, along))},
+            gap_key: ", ".join(f"{q:+.2f}" for q in np.quantile(gap.numpy(), [0.25, 0.5, 0.75]))}
 
 
 def nightstands_overlapping_bed(scenes: SceneBatch, bed: torch.Tensor, nightstand: torch.Tensor) -> float:

@@ -295,6 +295,7 @@ def test_relation_fidelity_takes_two_nightstands_apart():
     assert row["nightstands beside the head half %"] == pytest.approx(50.0)  # 2 of the 4 in rooms with a bed
     assert row["nightstands out from the side %"] == pytest.approx(100.0)  # the one at the foot is beside it too
     assert row["nightstands along the head half %"] == pytest.approx(50.0)
+    assert row["nightstand out from the bed's side, m (q1, median, q3)"] == "+0.25, +0.25, +0.25"
     assert row["headboard to wall, median (m)"] == pytest.approx(0.05, abs=1e-5)
     assert row["two_nightstands %"] == pytest.approx(100 / 3)
 
