@@ -313,6 +313,26 @@ def test_relation_fidelity_counts_nightstands_overlapping_their_bed():
     assert row["nightstands at a bed overlapping it %"] == pytest.approx(50.0)
 
 
+def test_bed_ablation_removes_only_the_bed_and_measures_from_it():
+    """benchmarks/bed_ablation.py: only rooms with one bed and a nightstand count; emptying the bed's slot moves
+    the restored nightstands of a network that attends across slots; distances out from the bed's side."""
+    from agents.denoiser import ScenePrior
+    from conftest import perturb_zero_init
+    from iarcs_env.env import default_stats
+
+    script = load_benchmark("bed_ablation")
+    torch.manual_seed(0)
+    prior = perturb_zero_init(ScenePrior.create("bedroom", default_stats("bedroom"), "tiny"))
+    bed = box("double_bed", 2.0, 1.05, 0.8, 1.0)  # x from 1.2 to 2.8
+    left, right = box("nightstand", 3.05, 0.5, 0.2, 0.2), box("nightstand", 0.95, 0.5, 0.2, 0.2)  # 0.25 m out
+    rooms = [make_layout([bed, left]), make_layout([bed, left, right]),
+             make_layout([bed, box("single_bed", 3.6, 3.0, 0.45, 0.9), left]), make_layout([bed])]
+    f = script.bed_ablation(prior, rooms, [1])[1]
+    assert (f["rooms"], f["nightstands"], f["kept"]) == (2, 3, 3)
+    assert f["out_from_side_truth"] == pytest.approx([0.25, 0.25, 0.25], abs=1e-3)
+    assert f["error_with_bed_m"] < 0.05 and f["moved_by_removing_bed_m"] > 0
+
+
 def test_class_counts_per_room_and_rooms_with_a_bed(tmp_path, capsys):
     """benchmarks/class_counts.py: what a run added or removed, class by class."""
     from iarcs_env.datasets import save_layouts
