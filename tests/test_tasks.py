@@ -191,7 +191,8 @@ def test_sample_satisfying_keeps_the_first_passing_draw_and_counts_every_draw():
     assert drawn.tolist() == [1, 3, 4] and passed.tolist() == [1, 1, 0]
     assert calls == [[0, 1, 2], [1, 2], [1, 2], [2]]  # only the floors still without a passing scene
 
-    calls.clear(), used.update({i: 0 for i in plans})  # few floors left: several draws each per round
+    calls.clear()  # again, with few floors left getting several draws each per round
+    used.update({i: 0 for i in plans})
     kept, drawn, passed = sample_satisfying(sample, 3, "reach_1m", max_draws=4, batch_size=6, progress=False)
     assert [k.id if k else None for k in kept] == ["0:0", "1:2", None]
     assert calls == [[0, 0, 1, 1, 2, 2], [1, 1, 2, 2]]
