@@ -225,9 +225,59 @@ class DenoiserBlock(nn.Module):
         return x
 
 
+class PointMaxPool(torch.autograd.Function):
+    """relu(h W^T + b) for every point, max-pooled over the points, and the same features at the points
+    ``subset``: PointNet's widest layer without its (B, P, F) activation. The forward pass computes it a few
+    rooms at a time; the backward pass uses that a max-pool's gradient reaches one point per room and
+    feature, so the (B, P, F) gradient and its two large matrix products are never formed. The values and
+    gradients are those of the plain layers (``tests/test_denoiser.py``)."""
+
+    CHUNK_ELEMENTS = 1 << 19  # activations per chunk: 2 MB in float32, about one core's L2 cache
+
+    @staticmethod
+    def forward(ctx, h, weight, bias, subset):
+        b, p, _ = h.shape
+        w = weight.to(h.dtype)
+        rows = PointMaxPool.rows_per_chunk(h, weight)
+        pooled, arg, sub = [], [], []
+        for i in range(0, b, rows):
+            z = h[i:i + rows] @ w.T  # the bias is the same at every point: added after the max
+            m, a = z.max(dim=1)
+            pooled.append(m)
+            arg.append(a)
+            sub.append(z[:, subset])
+        c = bias.to(h.dtype)
+        pooled, arg, sub = (torch.cat(pooled) + c).relu_(), torch.cat(arg), (torch.cat(sub) + c).relu_()
+        ctx.save_for_backward(h, weight, subset, pooled, arg, sub)
+        return pooled, sub
+
+    @staticmethod
+    def backward(ctx, g_pooled, g_sub):
+        h, weight, subset, pooled, arg, sub = ctx.saved_tensors
+        b, p, k = h.shape
+        w = weight.to(h.dtype)
+        g_pooled = (g_pooled * (pooled > 0)).to(h.dtype)  # (B, F): through the relu to the arg-max points
+        g_sub = (g_sub * (sub > 0)).to(h.dtype)  # (B, K, F)
+        g_weight = torch.einsum("bsf,bsc->fc", g_sub, h[:, subset])
+        g_h = torch.zeros_like(h)
+        rows = PointMaxPool.rows_per_chunk(h, weight)
+        for i in range(0, b, rows):  # each feature's gradient goes to its arg-max point
+            at = arg[i:i + rows, :, None].expand(-1, -1, k)
+            g = g_pooled[i:i + rows, :, None]
+            g_weight += (g * h[i:i + rows].gather(1, at)).sum(0)
+            g_h[i:i + rows].scatter_add_(1, at, g * w)
+        g_h.index_add_(1, subset, g_sub @ w)
+        g_bias = g_pooled.sum(0) + g_sub.sum((0, 1))
+        return g_h, g_weight.to(weight.dtype), g_bias.to(weight.dtype), None
+
+    @staticmethod
+    def rows_per_chunk(h: torch.Tensor, weight: torch.Tensor) -> int:
+        return max(1, PointMaxPool.CHUNK_ELEMENTS // (h.shape[1] * weight.shape[0]))
+
+
 class PointNetEncoder(nn.Module):
-    """PointNet over (B, P, 4) boundary points: per-point MLP, max-pool, linear -> (B, widths[-1]).
-    :meth:`encode` also returns the per-point features (B, P, widths[-2])."""
+    """PointNet over (B, P, 4) boundary points: per-point MLP (ReLU after every layer), max-pool, linear ->
+    (B, widths[-1]). :meth:`encode` also returns the per-point features (widths[-2]) of a subset of points."""
 
     def __init__(self, widths: Sequence[int]):
         super().__init__()
@@ -238,12 +288,16 @@ class PointNetEncoder(nn.Module):
         self.point_mlp = nn.Sequential(*layers)
         self.head = nn.Linear(widths[-2], widths[-1])
 
-    def encode(self, points: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        per_point = self.point_mlp(points)
-        return self.head(per_point.max(dim=1).values), per_point
+    def encode(self, points: torch.Tensor, subset: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """(global feature (B, widths[-1]), per-point features of the points ``subset`` (B, len(subset),
+        widths[-2]))."""
+        h = self.point_mlp[:-2](points)
+        last = self.point_mlp[-2]
+        pooled, per_point = PointMaxPool.apply(h, last.weight, last.bias, subset)
+        return self.head(pooled), per_point
 
     def forward(self, points: torch.Tensor) -> torch.Tensor:
-        return self.encode(points)[0]
+        return self.encode(points, points.new_zeros(0, dtype=torch.long))[0]
 
 
 WALL_FEATURES = 10  # SceneDenoiser.wall_features: (offset 2, normal 2, signed distance 1) x 2 walls
@@ -332,19 +386,19 @@ class SceneDenoiser(nn.Module):
         ``floor_adaln`` row 0 is the floor's adaLN vector, the other rows the cross-attention tokens.
         Zeros = unconditional."""
         cfg = self.config
-        f, per_point = self.floor_encoder.encode(floor)
-        b, p = per_point.shape[:2]
+        b, p = floor.shape[:2]
+        subset = point_subset(p, cfg.floor_point_tokens, floor.device)
+        f, per_point = self.floor_encoder.encode(floor, subset)
         tokens = []
         if self.floor_proj is not None:
             tokens.append(self.floor_proj(f).view(b, cfg.floor_tokens, cfg.width))
         if cfg.floor_point_tokens:
-            idx = point_subset(p, cfg.floor_point_tokens, floor.device)
-            tokens.append(self.floor_point_proj(per_point[:, idx]) + self.floor_point_global(f)[:, None])
+            tokens.append(self.floor_point_proj(per_point) + self.floor_point_global(f)[:, None])
         ctx = self.floor_norm(torch.cat(tokens, 1))
         if cfg.floor_adaln:
             ctx = torch.cat([self.floor_adaln(f)[:, None], ctx], 1)
         if cfg.floor_slot_features:  # the raw (x, z, nx, nz) of the subset, packed into rows of width d
-            raw = floor[:, point_subset(p, cfg.floor_point_tokens, floor.device)].reshape(b, -1)
+            raw = floor[:, subset].reshape(b, -1)
             if cfg.room_frame:  # half-extents of the scaled floor, over all its points (centred floors)
                 raw = torch.cat([raw, floor[..., :2].abs().amax(1)], 1)
             rows = -(-raw.shape[1] // cfg.width)

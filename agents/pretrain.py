@@ -67,6 +67,9 @@ class PretrainConfig:
     """Scenes per optimizer step (under ``torchrun``: in all, split evenly over the processes)."""
     lr: float = 5e-4
     """Peak learning rate of AdamW."""
+    lr_schedule: str = "cosine"
+    """After the warm-up: ``cosine`` (decays to ``lr * min_lr_ratio`` at ``steps``) or ``constant`` (for a run
+    whose length a clock sets, ``iarcs pretrain --time-budget``; the EMA weights are what it exports)."""
     min_lr_ratio: float = 0.1
     """The cosine decay ends at ``lr * min_lr_ratio``."""
     warmup_steps: int = 300
@@ -129,6 +132,9 @@ class PretrainConfig:
     precision: str = "fp32"
     """``fp32``, or ``bf16``: the denoiser's forward pass under ``torch.autocast`` in bfloat16 (weights, optimiser,
     EMA and the loss stay float32). Faster on recent GPUs (the ``paper`` preset); no faster on a CPU."""
+    compile: bool = False
+    """``torch.compile`` the denoiser (fewer, fused GPU kernels; it compiles for a minute or two first). When
+    compiling fails the run goes on without it, with the reason logged."""
     tensorboard: bool = True
     """Write TensorBoard scalars to ``out/tb``."""
     init_from: str = ""
@@ -139,6 +145,8 @@ class PretrainConfig:
     def __post_init__(self):
         get_room(self.room)
         check_device(self.device)
+        if self.lr_schedule not in ("cosine", "constant"):
+            raise ValueError(f"lr_schedule must be cosine or constant, got {self.lr_schedule!r}")
         if self.precision not in ("fp32", "bf16"):
             raise ValueError(f"precision must be fp32 or bf16, got {self.precision!r}")
         DenoiserConfig.from_preset(self.preset, **dict(self.model))
@@ -176,6 +184,17 @@ def load_config(path: str | Path, **overrides) -> PretrainConfig:
     return load_yaml_config(PretrainConfig, path, **overrides)
 
 
+def on_rows(mask: torch.Tensor, per_scene: Callable[..., torch.Tensor], *scenes: torch.Tensor) -> torch.Tensor:
+    """``per_scene(*scenes)`` (one value per scene, a batch in each tensor) where ``mask`` is true, 0 elsewhere.
+    On the CPU only the masked scenes are computed (the x0-hat losses apply to a few noise levels); on a GPU
+    all are, times the mask, since selecting rows would make the host wait for the mask."""
+    if mask.device.type != "cpu":
+        return per_scene(*scenes) * mask
+    rows = mask.nonzero().squeeze(1)
+    values = per_scene(*(x[rows] for x in scenes)) if len(rows) else scenes[0].new_zeros(0)
+    return scenes[0].new_zeros(mask.shape).index_put((rows,), values.to(scenes[0].dtype))
+
+
 def overlap_excess(spec, stats: DatasetStats, extents: torch.Tensor, weight: float = 1.0,
                    max_timestep: int = NoiseSchedule().num_train_timesteps) -> Callable:
     """The ``x0_penalty`` of :meth:`NoiseSchedule.training_loss` for ``overlap_weight``: per scene with
@@ -186,23 +205,23 @@ def overlap_excess(spec, stats: DatasetStats, extents: torch.Tensor, weight: flo
     the overlap volume beyond the data's and moves objects apart on the floor, it cannot be lowered by
     shrinking, turning or lifting them (a lamp above a bed costs nothing)."""
 
-    def overlaps(x):  # (B, N, N, 3) overlap lengths of each pair of boxes' bounds along x, y and z
+    def overlaps(x, extents):  # (B, N, N, 3) overlap lengths of each pair of boxes' bounds along x, y and z
         trans, half, yaws = decode_geometry(x, stats, extents)
         reach = footprint_reach(half[..., [0, 2]], torch.cos(yaws), torch.sin(yaws))
         bound = torch.stack([reach[..., 0], half[..., 1], reach[..., 1]], -1)
         lo, hi = trans - bound, trans + bound
         return (torch.minimum(hi[:, :, None], hi[:, None]) - torch.maximum(lo[:, :, None], lo[:, None])).clamp_min(0)
 
-    def penalty(x0_hat, x0, t):
+    def per_scene(x0_hat, x0, extents):
         objects = x0[..., 8:].argmax(-1) != spec.empty_index
         pairs = (objects[:, :, None] & objects[:, None]).triu(1)
-        placed = overlaps(torch.cat([x0_hat[..., :3], x0[..., 3:]], -1))  # predicted positions, the data's boxes
-        data = overlaps(x0)
+        placed = overlaps(torch.cat([x0_hat[..., :3], x0[..., 3:]], -1), extents)  # predicted positions, data's boxes
+        data = overlaps(x0, extents)
         area = lambda o: o[..., 0] * o[..., 2]  # noqa: E731
         excess = (area(placed) - area(data)).clamp_min(0) * data[..., 1] * pairs
-        return weight * excess.flatten(1).sum(1) * (t < max_timestep)
+        return excess.flatten(1).sum(1)
 
-    return penalty
+    return lambda x0_hat, x0, t: weight * on_rows(t < max_timestep, per_scene, x0_hat, x0, extents)
 
 
 def loss_feature_weights(cfg: PretrainConfig, feature_dim: int) -> torch.Tensor | None:
@@ -226,7 +245,7 @@ def out_of_bound_excess(spec, stats: DatasetStats, extents: torch.Tensor, points
     footprints of x0_hat are the data's at x0_hat's floor positions, as in :func:`overlap_excess`; the data's
     own overhangs cost nothing."""
 
-    def behind(x):  # (B, N, 4) metres behind the nearest wall, per footprint corner
+    def behind(x, extents, points):  # (B, N, 4) metres behind the nearest wall, per footprint corner
         trans, half, yaws = decode_geometry(x, stats, extents)
         corners = box_corners_xz(trans[..., [0, 2]], half[..., [0, 2]], yaws)[..., None, :]  # (B, N, 4, 1, 2)
         offset = corners - points[:, None, None, :, :2]  # (B, N, 4, P, 2)
@@ -234,13 +253,13 @@ def out_of_bound_excess(spec, stats: DatasetStats, extents: torch.Tensor, points
         along_normal = (offset * points[:, None, None, :, 2:]).sum(-1).gather(-1, nearest).squeeze(-1)
         return (-along_normal).clamp_min(0)
 
-    def penalty(x0_hat, x0, t):
+    def per_scene(x0_hat, x0, extents, points):
         objects = x0[..., 8:].argmax(-1) != spec.empty_index
-        placed = behind(torch.cat([x0_hat[..., :3], x0[..., 3:]], -1))
-        excess = (placed - behind(x0)).clamp_min(0).sum(-1) * objects
-        return weight * excess.sum(1) * (t < max_timestep)
+        placed = behind(torch.cat([x0_hat[..., :3], x0[..., 3:]], -1), extents, points)
+        excess = (placed - behind(x0, extents, points)).clamp_min(0).sum(-1) * objects
+        return excess.sum(1)
 
-    return penalty
+    return lambda x0_hat, x0, t: weight * on_rows(t < max_timestep, per_scene, x0_hat, x0, extents, points)
 
 
 # --- training ------------------------------------------------------------------------------------------
@@ -259,18 +278,33 @@ class TrainResult:
     out: Path | None = None
     prior_path: Path | None = None
     seconds: float = 0.0
+    stopped_by_deadline: bool = False
+    """The time budget ended the run (before ``cfg.steps`` or ``max_steps``)."""
 
 
-def load_init_prior(cfg: PretrainConfig) -> ScenePrior:
-    """The checkpoint ``cfg.init_from`` names, checked to fit the run's room and architecture."""
+def load_init(cfg: PretrainConfig) -> tuple[ScenePrior, dict | None]:
+    """What ``cfg.init_from`` names, checked to fit the run's room and architecture: a scene-prior checkpoint
+    (``default``: the shipped prior of the room), or a pretraining run folder or its ``train_state.pt``. Returns
+    the prior (for a run: its EMA weights) and, for a run, its training state (weights, EMA and optimizer
+    state, which the new run continues), else None."""
     where = f"init_from {cfg.init_from!r}"
+    state = None
     if cfg.init_from == "default":
         prior = ScenePrior.load_default(cfg.room)
     else:
         path = Path(cfg.init_from).expanduser()
         if not path.is_absolute() and not path.exists():
             path = REPO_ROOT / path
-        prior = ScenePrior.load(path)
+        if path.is_dir():
+            if not (path / STATE_FILE).exists():
+                raise FileNotFoundError(f"{where}: {path} holds no {STATE_FILE}; give a pretraining run folder, its "
+                                        f"{STATE_FILE}, a prior checkpoint (.pt) or 'default'")
+            path = path / STATE_FILE
+        if path.name == STATE_FILE:
+            state = torch.load(path, map_location="cpu", weights_only=True)
+            prior = prior_from_state(state, str(path))
+        else:
+            prior = ScenePrior.load(path)
     if prior.spec.name != get_room(cfg.room).name:
         raise ValueError(f"{where} is a {prior.spec.name} prior, but this run trains a {cfg.room} prior: "
                          "initialise from a prior of the same room type")
@@ -280,16 +314,88 @@ def load_init_prior(cfg: PretrainConfig) -> ScenePrior:
                 if getattr(prior.denoiser.config, k) != getattr(want, k)}
         raise ValueError(f"{where} has another architecture than preset {cfg.preset!r} with model {dict(cfg.model)} "
                          f"(checkpoint vs config: {diff}); set preset/model to the checkpoint's")
-    return prior
+    return prior, state
 
 
 def lr_at(step: int, cfg: PretrainConfig) -> float:
-    """Linear warm-up then cosine decay to ``lr * min_lr_ratio``."""
+    """Linear warm-up, then a cosine decay to ``lr * min_lr_ratio`` at ``cfg.steps`` (``lr_schedule: cosine``)
+    or the peak rate held (``constant``)."""
     if cfg.warmup_steps > 0 and step < cfg.warmup_steps:
         return cfg.lr * (step + 1) / cfg.warmup_steps
+    if cfg.lr_schedule == "constant":
+        return cfg.lr
     span = max(cfg.steps - cfg.warmup_steps, 1)
     frac = min(max(step - cfg.warmup_steps, 0) / span, 1.0)
     return cfg.lr * (cfg.min_lr_ratio + (1 - cfg.min_lr_ratio) * 0.5 * (1 + math.cos(math.pi * frac)))
+
+
+@dataclass
+class TrainingBatch:
+    """One step's batch on the training device."""
+
+    x0: torch.Tensor
+    """Clean scenes (B, N, 8 + K)."""
+    floor: torch.Tensor
+    """Floor conditions (B, P, 4); zero for the scenes whose condition is dropped."""
+    t: torch.Tensor
+    """Timesteps (B,)."""
+    noise: torch.Tensor
+    """epsilon (B, N, 8 + K)."""
+    extents: torch.Tensor
+    """The floors' half-extents (B, 2) in metres."""
+    points: torch.Tensor
+    """The floors' boundary points (B, P, 4): x, z, nx, nz in metres."""
+
+
+def draw_batch(data: SceneTensors, cfg: PretrainConfig, spec, stats: DatasetStats, generator: torch.Generator,
+               size: int) -> TrainingBatch:
+    """All of a step's randomness, drawn from ``generator`` on the data's device in one order: the rooms, their
+    rotations and slot permutations, which conditions are dropped, the timesteps and the noise."""
+    device = data.labels.device
+    idx = torch.randint(0, len(data), (size,), generator=generator, device=device)
+    metric = data.batch(idx, generator, rotate=cfg.rotation_augment, permute=cfg.permutation_augment)
+    x0, floor = encode_batch(spec, stats, *metric)
+    if cfg.cond_drop_prob > 0:
+        keep = torch.rand(size, generator=generator, device=device) >= cfg.cond_drop_prob
+        floor = floor * keep[:, None, None]
+    t = torch.randint(0, cfg.max_timestep or NoiseSchedule().num_train_timesteps, (size,), generator=generator,
+                      device=device)
+    noise = torch.randn(x0.shape, generator=generator, device=device)
+    return TrainingBatch(x0, floor, t, noise, metric[5], metric[4])
+
+
+def batch_loss(model: Callable, schedule: NoiseSchedule, batch: TrainingBatch, cfg: PretrainConfig, spec,
+               stats: DatasetStats, weights: torch.Tensor | None) -> torch.Tensor:
+    """Per-scene loss (B,): the DDPM epsilon loss (feature-weighted by ``weights``) plus the x0-hat losses the
+    config asks for. ``model(x_t, t, floor)`` predicts epsilon."""
+    penalties = []
+    if cfg.overlap_weight:
+        penalties.append(overlap_excess(spec, stats, batch.extents, cfg.overlap_weight, cfg.overlap_max_timestep))
+    if cfg.out_of_bound_weight:
+        penalties.append(out_of_bound_excess(spec, stats, batch.extents, batch.points, cfg.out_of_bound_weight,
+                                             cfg.out_of_bound_max_timestep))
+    penalty = (lambda x0_hat, x0, t: sum(p(x0_hat, x0, t) for p in penalties)) if penalties else None
+    return schedule.training_loss(lambda x, t: model(x, t, batch.floor).float(), batch.x0, t=batch.t,
+                                  noise=batch.noise, reduction="none", feature_weights=weights, x0_penalty=penalty)
+
+
+def compiled(net: SceneDenoiser, example: Callable[[], TrainingBatch], schedule: NoiseSchedule,
+             cfg: PretrainConfig, spec, stats: DatasetStats, weights, log: Callable[[str], None]) -> Callable:
+    """``torch.compile(net)``, compiled on one forward and backward pass of an ``example()`` batch (its gradients
+    dropped); ``net`` itself when compiling fails, with the reason logged: the run goes on eagerly."""
+    try:
+        model = torch.compile(net)
+        t0 = time.perf_counter()
+        with torch.autocast(next(net.parameters()).device.type, dtype=torch.bfloat16, enabled=cfg.precision == "bf16"):
+            batch_loss(model, schedule, example(), cfg, spec, stats, weights).mean().backward()
+        net.zero_grad(set_to_none=True)
+        log(f"torch.compile: compiled in {time.perf_counter() - t0:.0f} s")
+        return model
+    except Exception as err:  # noqa: BLE001 - any compiler failure: train eagerly
+        net.zero_grad(set_to_none=True)
+        log(f"torch.compile failed ({type(err).__name__}: {str(err).splitlines()[0] if str(err) else ''}); "
+            "training without it")
+        return net
 
 
 def _check_resumable(saved: dict, cfg: PretrainConfig, path: Path) -> None:
@@ -301,9 +407,12 @@ def _check_resumable(saved: dict, cfg: PretrainConfig, path: Path) -> None:
 
 
 def train(cfg: PretrainConfig, layouts: Sequence[Layout] | None = None, max_steps: int | None = None,
-          progress: bool = True, log: Callable[[str], None] = print, resume: bool = True) -> TrainResult:
+          progress: bool = True, log: Callable[[str], None] = print, resume: bool = True,
+          time_budget: float | None = None) -> TrainResult:
     """Train (or resume) the prior of ``cfg``; stops at ``cfg.steps`` or, earlier, at ``max_steps``
-    (the global step to stop at, as if the run were interrupted there). ``layouts`` overrides the
+    (the global step to stop at, as if the run were interrupted there) or when ``time_budget`` seconds after
+    the call are spent (with the last checkpoint's duration kept free: it writes one then, and the run can be
+    resumed). ``layouts`` overrides the
     dataset of the config (tests pass hand-made rooms). Under ``torchrun`` every process draws its share of
     each batch, the gradients are averaged, and rank 0 alone writes (:mod:`agents.distributed`)."""
     from tqdm import tqdm
@@ -326,7 +435,7 @@ def train(cfg: PretrainConfig, layouts: Sequence[Layout] | None = None, max_step
     if resume and state_path.exists():
         saved = torch.load(state_path, map_location="cpu", weights_only=True)
         _check_resumable(saved["config"], cfg, state_path)
-    init = load_init_prior(cfg) if saved is None and cfg.init_from else None
+    init, init_state = load_init(cfg) if saved is None and cfg.init_from else (None, None)
 
     # data
     if layouts is None:
@@ -357,15 +466,19 @@ def train(cfg: PretrainConfig, layouts: Sequence[Layout] | None = None, max_step
     net.set_metric_scale(stats)
     weights = loss_feature_weights(cfg, spec.feature_dim)  # validation losses stay the plain loss
     if init is not None:
-        net.load_state_dict(init.denoiser.state_dict())
-        log(f"initialised from {cfg.init_from}")
+        net.load_state_dict(init_state["model"] if init_state else init.denoiser.state_dict())
+        log(f"initialised from {cfg.init_from}" + (" (weights, EMA and optimizer state)" if init_state else ""))
     net.to(device)
     distributed.broadcast_parameters(net.parameters())  # one initialisation on every rank
     if weights is not None:
         weights = weights.to(device)
     ema = copy.deepcopy(net).eval().requires_grad_(False)
-    opt = torch.optim.AdamW(net.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
-    gen = torch.Generator().manual_seed(distributed.rank_seed(cfg.seed + 1))  # each rank its own batches
+    opt = torch.optim.AdamW(net.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay, fused=True)
+    if init_state:
+        ema.load_state_dict(init_state["ema"])
+        opt.load_state_dict(init_state["optimizer"])
+    data, val = data.to(device), val.to(device) if val is not None else None  # resident on the training device
+    gen = torch.Generator(device).manual_seed(distributed.rank_seed(cfg.seed + 1))  # each rank its own batches
     schedule = NoiseSchedule()
     step = 0
     if saved is not None:
@@ -384,6 +497,7 @@ def train(cfg: PretrainConfig, layouts: Sequence[Layout] | None = None, max_step
                                    if processes > 1 else ""))
     result = TrainResult(step=step, resumed_from=step, out=out)
     stop = min(cfg.steps, max_steps) if max_steps is not None else cfg.steps
+    deadline = t_start + time_budget if time_budget is not None else math.inf
 
     writer = None
     if cfg.tensorboard and main:
@@ -406,77 +520,79 @@ def train(cfg: PretrainConfig, layouts: Sequence[Layout] | None = None, max_step
     def validate() -> float | None:
         if val is None:
             return None
-        g = torch.Generator().manual_seed(1234)  # the same t and noise every time
+        g = torch.Generator(device).manual_seed(1234)  # the same t and noise every time
         losses = []
         with torch.no_grad():
             for i in range(0, len(val), 256):
-                idx = torch.arange(i, min(i + 256, len(val)))
-                x0, floor = (x.to(device) for x in encode_batch(spec, stats, *val.batch(idx)))
+                idx = torch.arange(i, min(i + 256, len(val)), device=device)
+                x0, floor = encode_batch(spec, stats, *val.batch(idx))
                 losses.append(schedule.training_loss(lambda x, t: ema(x, t, floor), x0, g, reduction="none"))
         return float(torch.cat(losses).mean())
 
+    per_rank = cfg.batch_size // processes
+    model = compiled(net, lambda: draw_batch(data, cfg, spec, stats, gen, per_rank), schedule, cfg, spec, stats,
+                     weights, log) if cfg.compile and step < stop else net
     bar = tqdm(total=stop, initial=step, disable=not progress, desc=f"pretrain {spec.name}", dynamic_ncols=True)
-    running = None
+    running, loss_sum, summed = None, torch.zeros((), device=device), 0
+    params, ema_params = list(net.parameters()), list(ema.parameters())
+    max_norm = cfg.grad_clip if cfg.grad_clip > 0 else math.inf
+    save_seconds = 0.0  # how long the last checkpoint (and validation) took: kept free before the deadline
     net.train()
     try:
         while step < stop:
-            idx = torch.randint(0, len(data), (cfg.batch_size // processes,), generator=gen)
-            batch = data.batch(idx, gen, rotate=cfg.rotation_augment, permute=cfg.permutation_augment)
-            x0, floor = encode_batch(spec, stats, *batch)
-            if cfg.cond_drop_prob > 0:
-                keep = (torch.rand(x0.shape[0], generator=gen) >= cfg.cond_drop_prob).float()
-                floor = floor * keep[:, None, None]
-            x0, floor = x0.to(device), floor.to(device)
+            batch = draw_batch(data, cfg, spec, stats, gen, per_rank)
             lr = lr_at(step, cfg)
             for group in opt.param_groups:
                 group["lr"] = lr
-            low_t = None
-            if cfg.max_timestep:
-                low_t = torch.randint(0, cfg.max_timestep, (x0.shape[0],), generator=gen).to(device)
-            penalties = []
-            if cfg.overlap_weight:
-                penalties.append(overlap_excess(spec, stats, batch[-1].to(device), cfg.overlap_weight,
-                                                cfg.overlap_max_timestep))
-            if cfg.out_of_bound_weight:
-                penalties.append(out_of_bound_excess(spec, stats, batch[-1].to(device), batch[-2].to(device),
-                                                     cfg.out_of_bound_weight, cfg.out_of_bound_max_timestep))
-            penalty = (lambda x0_hat, x0, t: sum(p(x0_hat, x0, t) for p in penalties)) if penalties else None
             with torch.autocast(device.type, dtype=torch.bfloat16, enabled=cfg.precision == "bf16"):
-                loss = schedule.training_loss(lambda x, t: net(x, t, floor).float(), x0, gen, t=low_t,
-                                              feature_weights=weights, x0_penalty=penalty)
+                loss = batch_loss(model, schedule, batch, cfg, spec, stats, weights).mean()
             opt.zero_grad(set_to_none=True)
             loss.backward()
-            distributed.average_gradients(net.parameters())
-            grad_norm = torch.nn.utils.clip_grad_norm_(net.parameters(), cfg.grad_clip if cfg.grad_clip > 0 else
-                                                       float("inf"))
+            distributed.average_gradients(params)
+            grad_norm = torch.nn.utils.clip_grad_norm_(params, max_norm, foreach=True)
             opt.step()
-            decay = min(cfg.ema_decay, (1 + step) / (10 + step))
+            decay = cfg.ema_decay if init is not None else min(cfg.ema_decay, (1 + step) / (10 + step))
             with torch.no_grad():
-                for pe, p in zip(ema.parameters(), net.parameters()):
-                    pe.lerp_(p, 1 - decay)
+                torch._foreach_lerp_(ema_params, params, 1 - decay)
             step += 1
-            value = float(distributed.all_gather(loss.detach().reshape(1)).mean())  # the whole batch's loss
-            result.losses.append((step, value))
-            running = value if running is None else 0.98 * running + 0.02 * value
+            loss_sum += loss.detach()  # read (a host synchronisation) only when logged
+            summed += 1
             bar.update(1)
-            if main and (step % cfg.log_every == 0 or step == stop):
-                bar.set_postfix(loss=f"{running:.4f}", lr=f"{lr:.2e}")
-                record = {"step": step, "loss": value, "loss_avg": running, "lr": lr, "grad_norm": float(grad_norm)}
-                if writer is not None:
-                    writer.add_scalar("train/loss", value, step)
-                    writer.add_scalar("train/loss_avg", running, step)
-                    writer.add_scalar("train/lr", lr, step)
-                    writer.add_scalar("train/grad_norm", float(grad_norm), step)
-                if step % cfg.eval_every == 0 or step == stop:
-                    v = validate()
-                    if v is not None:
-                        result.val_losses.append((step, v))
-                        record["val_loss_ema"] = v
-                        if writer is not None:
-                            writer.add_scalar("val/loss_ema", v, step)
-                metrics.write(json.dumps(record) + "\n")
-                metrics.flush()
-            if main and (step % cfg.checkpoint_every == 0 or step == stop):
+            late = time.perf_counter() + save_seconds >= deadline  # each process's clock; rank 0's counts
+            if step % cfg.log_every == 0 or step == stop or (late and processes == 1):
+                row = torch.stack([loss_sum / summed, torch.tensor(float(late and main), device=device)])
+                gathered = distributed.all_gather(row.reshape(1, 2))  # read: a host synchronisation
+                value, late = float(gathered[:, 0].mean()), bool(gathered[:, 1].max() > 0)  # the whole batch's
+                loss_sum.zero_()
+                summed = 0
+                result.losses.append((step, value))
+                running = value if running is None else 0.9 * running + 0.1 * value
+                if late:  # the time budget is spent: every process stops here, with a checkpoint
+                    stop = step
+                    result.stopped_by_deadline = True
+                if main:
+                    t_save = time.perf_counter()
+                    bar.set_postfix(loss=f"{running:.4f}", lr=f"{lr:.2e}")
+                    record = {"step": step, "loss": value, "loss_avg": running, "lr": lr,
+                              "grad_norm": float(grad_norm), "seconds": round(time.perf_counter() - t_start, 1)}
+                    if writer is not None:
+                        writer.add_scalar("train/loss", value, step)
+                        writer.add_scalar("train/loss_avg", running, step)
+                        writer.add_scalar("train/lr", lr, step)
+                        writer.add_scalar("train/grad_norm", float(grad_norm), step)
+                    if step % cfg.eval_every == 0 or step == stop:
+                        v = validate()
+                        if v is not None:
+                            result.val_losses.append((step, v))
+                            record["val_loss_ema"] = v
+                            if writer is not None:
+                                writer.add_scalar("val/loss_ema", v, step)
+                    metrics.write(json.dumps(record) + "\n")
+                    metrics.flush()
+                    if step % cfg.checkpoint_every == 0 or step == stop:
+                        save_checkpoint()
+                        save_seconds = time.perf_counter() - t_save
+            elif main and step % cfg.checkpoint_every == 0:
                 save_checkpoint()
     finally:
         bar.close()
@@ -489,18 +605,21 @@ def train(cfg: PretrainConfig, layouts: Sequence[Layout] | None = None, max_step
     return result
 
 
+def prior_from_state(state: dict, where: str = "train_state.pt") -> ScenePrior:
+    """The EMA weights of a pretraining state (``train_state.pt``) as a :class:`ScenePrior`."""
+    cfg = config_from_dict(state["config"], where)
+    spec = get_room(cfg.room)
+    net = SceneDenoiser(cfg.denoiser_config(), spec.feature_dim)
+    net.load_state_dict(state["ema"])
+    return ScenePrior(net, DatasetStats.from_json(state["stats"], spec.name), NoiseSchedule(),
+                      meta={"step": int(state["step"]), "preset": cfg.preset, "dataset": cfg.dataset, "room": spec.name})
+
+
 def export_prior(state_path: str | Path, dest: str | Path, half: bool = False) -> Path:
     """Write the EMA weights of a ``train_state.pt`` as a :class:`ScenePrior` checkpoint (``half``:
     float16 weights, half the file size; they are loaded back as float32)."""
     state = torch.load(state_path, map_location="cpu", weights_only=True)
-    cfg = config_from_dict(state["config"], str(state_path))
-    spec = get_room(cfg.room)
-    net = SceneDenoiser(cfg.denoiser_config(), spec.feature_dim)
-    net.load_state_dict(state["ema"])
-    prior = ScenePrior(net, DatasetStats.from_json(state["stats"], spec.name), NoiseSchedule(),
-                       meta={"step": int(state["step"]), "preset": cfg.preset, "dataset": cfg.dataset,
-                             "room": spec.name})
-    return prior.save(dest, half=half)
+    return prior_from_state(state, str(state_path)).save(dest, half=half)
 
 
 def _write_yaml(path: Path, data: dict) -> None:
@@ -510,5 +629,5 @@ def _write_yaml(path: Path, data: dict) -> None:
 
 
 __all__ = ["PretrainConfig", "SceneTensors", "TrainResult", "config_from_dict", "encode_batch", "export_prior",
-           "load_config", "load_training_layouts", "lr_at", "resolve_dataset", "scale_floor_points",
+           "load_config", "load_training_layouts", "lr_at", "draw_batch", "batch_loss", "resolve_dataset", "scale_floor_points",
            "stats_for_training", "train"]

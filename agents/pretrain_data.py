@@ -5,7 +5,7 @@ permutations) done on the tensors."""
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 from pathlib import Path
 from typing import TYPE_CHECKING, Callable, Sequence
 
@@ -59,6 +59,10 @@ class SceneTensors:
     def __len__(self) -> int:
         return self.labels.shape[0]
 
+    def to(self, device) -> "SceneTensors":
+        """The same tensors on ``device`` (the training device: batches are then drawn and augmented there)."""
+        return SceneTensors(*(getattr(self, f.name).to(device) for f in fields(self)))
+
     def batch(self, idx: torch.Tensor, generator: torch.Generator | None = None, rotate: bool = False,
               permute: bool = False):
         """Metric tensors of scenes ``idx``, optionally rotated by random multiples of 90 degrees about +y
@@ -68,7 +72,7 @@ class SceneTensors:
         extents = self.extents[idx].clone()
         b, n = labels.shape
         if rotate:
-            k = torch.randint(0, 4, (b,), generator=generator)
+            k = torch.randint(0, 4, (b,), generator=generator, device=labels.device)
             ang = k.float() * (math.pi / 2)
             c, s = torch.cos(ang).round(), torch.sin(ang).round()  # exact for multiples of 90 degrees
             trans[..., [0, 2]] = rotate_xz_tensor(trans[..., [0, 2]], c[:, None], s[:, None])
@@ -78,7 +82,7 @@ class SceneTensors:
             yaws = (yaws + math.pi) % (2 * math.pi) - math.pi
             extents = torch.where((k % 2 == 1)[:, None], extents.flip(-1), extents)  # 90 degrees swap x, z
         if permute:
-            perm = torch.rand(b, n, generator=generator).argsort(1)
+            perm = torch.rand(b, n, generator=generator, device=labels.device).argsort(1)
             labels = labels.gather(1, perm)
             trans = trans.gather(1, perm[..., None].expand(-1, -1, 3))
             half = half.gather(1, perm[..., None].expand(-1, -1, 3))

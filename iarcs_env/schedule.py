@@ -139,7 +139,9 @@ class NoiseSchedule:
     def _abar(self, t: torch.Tensor | int, like: torch.Tensor) -> torch.Tensor:
         """alpha-bar_t for (B,) or scalar timesteps, with alpha-bar = final_alpha_cumprod for t < 0,
         reshaped to broadcast against ``like`` (B, ...)."""
-        t = torch.as_tensor(t, device=self.alphas_cumprod.device).long()
+        t = torch.as_tensor(t).long()
+        if self.alphas_cumprod.device != t.device:  # kept where the timesteps are: no copy back to the host
+            self.alphas_cumprod = self.alphas_cumprod.to(t.device)
         ac = self.alphas_cumprod[t.clamp(min=0)]
         ac = torch.where(t >= 0, ac, torch.full_like(ac, self.final_alpha_cumprod))
         ac = ac.to(device=like.device, dtype=like.dtype)

@@ -3,6 +3,7 @@ frequencies, furniture counts, plus the object-count histogram used by the objec
 
 from __future__ import annotations
 
+import functools
 import json
 from collections import Counter
 from dataclasses import dataclass, field
@@ -19,6 +20,13 @@ ATISS_EXTRA_TOKENS = ("start", "end")
 #: How model features scale the floor-plane translations: by each room's floor half-extent, or by the
 #: dataset bounds (see :class:`DatasetStats`).
 TRANSLATION_FRAMES = ("room", "dataset")
+
+
+@functools.lru_cache(maxsize=64)
+def _constant(values: tuple, dtype: torch.dtype, device: torch.device) -> torch.Tensor:
+    """``values`` as a tensor, made once per device and dtype: a GPU training step copies nothing from the host
+    (never modify the result in place)."""
+    return torch.tensor(values, dtype=dtype, device=device)
 
 
 @dataclass
@@ -65,11 +73,11 @@ class DatasetStats:
         return list(self.spec.classes)
 
     def translation_bounds(self, like: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        b = torch.tensor(self.bounds_translations, dtype=like.dtype, device=like.device)
+        b = _constant(tuple(self.bounds_translations), like.dtype, like.device)
         return b[:3], b[3:]
 
     def size_bounds(self, like: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        b = torch.tensor(self.bounds_sizes, dtype=like.dtype, device=like.device)
+        b = _constant(tuple(self.bounds_sizes), like.dtype, like.device)
         return b[:3], b[3:]
 
     def count_distribution(self, num_slots: int | None = None) -> np.ndarray:
