@@ -296,6 +296,12 @@ class PointNetEncoder(nn.Module):
         pooled, per_point = PointMaxPool.apply(h, last.weight, last.bias, subset)
         return self.head(pooled), per_point
 
+    def encode_reference(self, points: torch.Tensor, subset: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """:meth:`encode` as plain layers, the (B, P, F) activation formed: what the fast path is tested against,
+        and the model FLOPs of a training step are counted on (``benchmarks/bench_pretrain.py``)."""
+        per_point = self.point_mlp(points)
+        return self.head(per_point.max(dim=1).values), per_point[:, subset]
+
     def forward(self, points: torch.Tensor) -> torch.Tensor:
         return self.encode(points, points.new_zeros(0, dtype=torch.long))[0]
 

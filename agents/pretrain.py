@@ -379,6 +379,36 @@ def batch_loss(model: Callable, schedule: NoiseSchedule, batch: TrainingBatch, c
                                   noise=batch.noise, reduction="none", feature_weights=weights, x0_penalty=penalty)
 
 
+def training_step(model: Callable, net: SceneDenoiser, ema: SceneDenoiser, opt: torch.optim.Optimizer,
+                  schedule: NoiseSchedule, cfg: PretrainConfig, spec, stats: DatasetStats, weights,
+                  next_batch: Callable[[], TrainingBatch], lr: float, ema_decay: float,
+                  mark: Callable[[str], None] | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+    """One optimizer step on ``next_batch()``: the loss of :func:`batch_loss` through ``model`` (``net`` or its
+    compiled form), its gradients averaged over the processes and clipped, AdamW at ``lr``, and the EMA
+    weights moved towards the new ones. Returns the loss and the gradient norm as tensors on the device (reading
+    them would wait for the step). ``mark(part)``, if given, is called after each part (benchmarks time them)."""
+    mark = mark or (lambda part: None)
+    batch = next_batch()
+    mark("data")
+    for group in opt.param_groups:
+        group["lr"] = lr
+    with torch.autocast(batch.x0.device.type, dtype=torch.bfloat16, enabled=cfg.precision == "bf16"):
+        loss = batch_loss(model, schedule, batch, cfg, spec, stats, weights).mean()
+    mark("forward")
+    opt.zero_grad(set_to_none=True)
+    loss.backward()
+    mark("backward")
+    params = list(net.parameters())
+    distributed.average_gradients(params)
+    grad_norm = torch.nn.utils.clip_grad_norm_(params, cfg.grad_clip if cfg.grad_clip > 0 else math.inf, foreach=True)
+    opt.step()
+    mark("optimizer")
+    with torch.no_grad():
+        torch._foreach_lerp_(list(ema.parameters()), params, 1 - ema_decay)
+    mark("ema")
+    return loss.detach(), grad_norm
+
+
 def compiled(net: SceneDenoiser, example: Callable[[], TrainingBatch], schedule: NoiseSchedule,
              cfg: PretrainConfig, spec, stats: DatasetStats, weights, log: Callable[[str], None]) -> Callable:
     """``torch.compile(net)``, compiled on one forward and backward pass of an ``example()`` batch (its gradients
@@ -534,26 +564,14 @@ def train(cfg: PretrainConfig, layouts: Sequence[Layout] | None = None, max_step
                      weights, log) if cfg.compile and step < stop else net
     bar = tqdm(total=stop, initial=step, disable=not progress, desc=f"pretrain {spec.name}", dynamic_ncols=True)
     running, loss_sum, summed = None, torch.zeros((), device=device), 0
-    params, ema_params = list(net.parameters()), list(ema.parameters())
-    max_norm = cfg.grad_clip if cfg.grad_clip > 0 else math.inf
     save_seconds = 0.0  # how long the last checkpoint (and validation) took: kept free before the deadline
     net.train()
     try:
         while step < stop:
-            batch = draw_batch(data, cfg, spec, stats, gen, per_rank)
             lr = lr_at(step, cfg)
-            for group in opt.param_groups:
-                group["lr"] = lr
-            with torch.autocast(device.type, dtype=torch.bfloat16, enabled=cfg.precision == "bf16"):
-                loss = batch_loss(model, schedule, batch, cfg, spec, stats, weights).mean()
-            opt.zero_grad(set_to_none=True)
-            loss.backward()
-            distributed.average_gradients(params)
-            grad_norm = torch.nn.utils.clip_grad_norm_(params, max_norm, foreach=True)
-            opt.step()
             decay = cfg.ema_decay if init is not None else min(cfg.ema_decay, (1 + step) / (10 + step))
-            with torch.no_grad():
-                torch._foreach_lerp_(ema_params, params, 1 - decay)
+            loss, grad_norm = training_step(model, net, ema, opt, schedule, cfg, spec, stats, weights,
+                                            lambda: draw_batch(data, cfg, spec, stats, gen, per_rank), lr, decay)
             step += 1
             loss_sum += loss.detach()  # read (a host synchronisation) only when logged
             summed += 1
@@ -629,5 +647,5 @@ def _write_yaml(path: Path, data: dict) -> None:
 
 
 __all__ = ["PretrainConfig", "SceneTensors", "TrainResult", "config_from_dict", "encode_batch", "export_prior",
-           "load_config", "load_training_layouts", "lr_at", "draw_batch", "batch_loss", "resolve_dataset", "scale_floor_points",
+           "load_config", "load_training_layouts", "lr_at", "draw_batch", "batch_loss", "training_step", "resolve_dataset", "scale_floor_points",
            "stats_for_training", "train"]

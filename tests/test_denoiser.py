@@ -385,3 +385,28 @@ def test_environment_default_stats_are_the_shipped_priors(room):
     assert stats.class_presence == pytest.approx(prior.stats.class_presence)
     assert stats.translation_frame == prior.stats.translation_frame
     assert stats.class_sizes and stats.class_sizes == prior.stats.class_sizes
+
+
+def test_the_pointnet_max_pool_matches_the_plain_layers(monkeypatch):
+    """:class:`PointMaxPool` (no (B, P, F) activation, a sparse backward) gives the plain layers' features and
+    gradients, in float64 to rounding, across chunks, for an all-zero (unconditional) floor whose points tie, and
+    for a subset that repeats points."""
+    from agents.denoiser import PointMaxPool, PointNetEncoder, point_subset
+
+    monkeypatch.setattr(PointMaxPool, "CHUNK_ELEMENTS", 2 * 40 * 64)  # two rooms a chunk
+    torch.manual_seed(0)
+    enc = PointNetEncoder((4, 16, 16, 64, 8)).double()
+    points = torch.randn(9, 40, 4, dtype=torch.float64)
+    points[3] = 0.0
+    for subset in (point_subset(40, 8), point_subset(6, 8)):
+        g_global, g_points = torch.randn(9, 8, dtype=torch.float64), torch.randn(9, 8, 64, dtype=torch.float64)
+        results = []
+        for encode in (PointNetEncoder.encode_reference, PointNetEncoder.encode):
+            enc.zero_grad()
+            pts = points.clone().requires_grad_(True)
+            glob, per_point = encode(enc, pts, subset)
+            ((glob * g_global).sum() + (per_point * g_points).sum()).backward()
+            results.append([glob.detach(), per_point.detach(), pts.grad] + [p.grad.clone() for p in enc.parameters()])
+        for a, b in zip(*results):
+            assert torch.allclose(a, b, atol=1e-12)
+    assert PointMaxPool.rows_per_chunk(points, enc.point_mlp[-2].weight) == 2

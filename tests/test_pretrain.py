@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import copy
 import json
 import math
 from dataclasses import replace
@@ -365,3 +366,51 @@ def test_cli_pretrain_and_sample(tmp_path, capsys):
     assert main(["sample", "--room", "diningroom", "--num-scenes", "2", "--steps", "3", "--out", str(out)]) == 0
     assert len(json.loads(out.read_text())["scenes"]) == 2  # the shipped dining-room prior
     assert main(args + ["--num-scenes", "0", "--out", str(out)]) == 2
+
+
+def test_the_fast_training_step_matches_a_plain_reference_step(tmp_path):
+    """Three steps of :func:`training_step` (the PointNet max-pool without its (B, P, F) activation, the x0-hat
+    losses on the low-noise scenes only, fused AdamW, a foreach EMA) against plain steps written out here
+    (the plain layers, the losses on every scene times the mask, torch's default AdamW, a loop over the EMA
+    weights), from the same weights on the same batches: the same losses, weights and EMA weights."""
+    from unittest import mock
+
+    import agents.pretrain as pre
+    from agents.denoiser import PointNetEncoder, SceneDenoiser
+    from iarcs_env.schedule import NoiseSchedule
+
+    rooms = toy_bedrooms(40)
+    cfg = tiny_config(tmp_path, preset="small", batch_size=24, overlap_weight=1.0, overlap_max_timestep=500,
+                      out_of_bound_weight=1.0, out_of_bound_max_timestep=500, elevation_weight=10.0)
+    stats = replace(stats_for_training(rooms, "bedroom", True), translation_frame="room")
+    data = SceneTensors.from_layouts(rooms, BEDROOM.max_objects)
+    weights = loss_feature_weights(cfg, BEDROOM.feature_dim)
+    schedule = NoiseSchedule()
+    torch.manual_seed(0)
+    nets = [SceneDenoiser(cfg.denoiser_config(), BEDROOM.feature_dim) for _ in range(2)]
+    nets[1].load_state_dict(nets[0].state_dict())
+    for net in nets:
+        net.set_metric_scale(stats)
+    emas = [copy.deepcopy(net).requires_grad_(False) for net in nets]
+    fast_opt = torch.optim.AdamW(nets[0].parameters(), lr=1e-3, fused=True)
+    plain_opt = torch.optim.AdamW(nets[1].parameters(), lr=1e-3)
+    batches = [pre.draw_batch(data, cfg, BEDROOM, stats, torch.Generator().manual_seed(i), 24) for i in range(3)]
+    assert all(int((b.t < 500).sum()) not in (0, 24) for b in batches)  # some scenes with the x0-hat losses, some not
+
+    for batch in batches:
+        fast, _ = pre.training_step(nets[0], nets[0], emas[0], fast_opt, schedule, cfg, BEDROOM, stats, weights,
+                                    lambda: batch, 1e-3, 0.9)
+        with mock.patch.object(PointNetEncoder, "encode", PointNetEncoder.encode_reference), \
+                mock.patch.object(pre, "on_rows", lambda mask, per_scene, *scenes: per_scene(*scenes) * mask):
+            plain = pre.batch_loss(nets[1], schedule, batch, cfg, BEDROOM, stats, weights).mean()
+        plain_opt.zero_grad()
+        plain.backward()
+        torch.nn.utils.clip_grad_norm_(nets[1].parameters(), cfg.grad_clip)
+        plain_opt.step()
+        with torch.no_grad():
+            for pe, p in zip(emas[1].parameters(), nets[1].parameters()):
+                pe.copy_(0.9 * pe + 0.1 * p)
+        assert float(fast) == pytest.approx(float(plain.detach()), rel=1e-5)
+    for a, b in zip(list(nets[0].parameters()) + list(emas[0].parameters()),
+                    list(nets[1].parameters()) + list(emas[1].parameters())):
+        assert torch.allclose(a, b, rtol=1e-4, atol=1e-6)

@@ -15,6 +15,13 @@ def register(sub) -> None:
     p.add_argument("--stop-at", type=int, default=None,
                    help="stop at this global step as if interrupted there, keeping the config's learning-rate "
                         "schedule; the run resumes later from it (default: run to --steps)")
+    p.add_argument("--time-budget", type=float, default=None, metavar="MINUTES",
+                   help="stop cleanly when this many minutes have passed (a checkpoint and prior.pt written, the "
+                        "run resumable); pair it with 'lr_schedule: constant' (default: no limit)")
+    p.add_argument("--continue-from", nargs="?", const="default", default=None, metavar="PRIOR",
+                   help="start a new run from these weights: a prior checkpoint (.pt), a pretraining run folder or "
+                        "its train_state.pt (then its optimizer state too), or, with no value, the prior shipped "
+                        "for the config's room (sets the config's init_from)")
     p.add_argument("--no-resume", action="store_true",
                    help="refuse to continue an existing run in the output folder (default: resume it)")
     add_device_option(p, "the network trains")
@@ -54,20 +61,25 @@ def cmd_pretrain(args) -> int:
         raise CLIError(f"--steps must be a positive number, got {args.steps}")
     if args.stop_at is not None and args.stop_at <= 0:
         raise CLIError(f"--stop-at must be a positive step, got {args.stop_at}")
-    cfg = load_config(args.config, out=args.out, steps=args.steps, device=args.device)
+    if args.time_budget is not None and args.time_budget <= 0:
+        raise CLIError(f"--time-budget must be a positive number of minutes, got {args.time_budget}")
+    cfg = load_config(args.config, out=args.out, steps=args.steps, device=args.device, init_from=args.continue_from)
     out = Path(cfg.out)
     if args.no_resume and (out / STATE_FILE).exists():
         raise CLIError(f"{out} already holds a run ({STATE_FILE}); drop --no-resume to continue it, or choose "
                        "another --out")
     try:
-        result = train(cfg, max_steps=args.stop_at, resume=not args.no_resume)
+        result = train(cfg, max_steps=args.stop_at, resume=not args.no_resume,
+                       time_budget=args.time_budget * 60 if args.time_budget is not None else None)
         main = distributed.is_main()
     finally:
         distributed.cleanup()
     if not main:  # under torchrun, rank 0 reports
         return 0
     last = result.losses[-1][1] if result.losses else float("nan")
-    print(f"step {result.step}/{cfg.steps} in {result.seconds:.0f} s; last training loss {last:.4f}"
+    print(f"step {result.step}/{cfg.steps} in {result.seconds:.0f} s"
+          + (" (the time budget is spent)" if result.stopped_by_deadline else "")
+          + f"; last training loss {last:.4f}"
           + (f"; EMA validation loss {result.val_losses[-1][1]:.4f}" if result.val_losses else ""))
     print(f"prior: {out / PRIOR_FILE}\ntraining state (resumable): {out / STATE_FILE}")
     return 0

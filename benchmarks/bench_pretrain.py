@@ -1,0 +1,237 @@
+"""Pretraining throughput: rooms per second of the full training step (batch drawn and augmented on the
+device, forward, backward, optimizer, EMA, the x0-hat losses) with the shipped GPU recipe's losses
+(experiments/pretrain_bedroom_gpu.yaml), next to the matrix-multiply rate measured in the same run (float32
+on the CPU, bfloat16 on CUDA, square 1024 / 8192 matrices) and the model FLOPs per room:
+
+    fraction = rooms/s x model FLOPs per room / matmul FLOP/s
+
+Model FLOPs are what torch's FLOP counter counts for one step of the plain layers (the PointNet's
+(B, P, F) activation formed, as :meth:`PointNetEncoder.encode_reference` does), forward and backward. The
+step as it runs does fewer (its max-pool backward touches only the arg-max points); that count is
+``executed_flops_per_room``. Shares: the parts of the step timed with a synchronisation between them (the
+x0-hat losses, inside forward and backward, timed on their own).
+
+    .venv/bin/python benchmarks/bench_pretrain.py [--device cpu|cuda] [--json FILE]
+    .venv/bin/python benchmarks/bench_pretrain.py --presets small --batches 512     # one row
+
+``--batches`` takes numbers and ``max``: the largest power of two whose step fits in memory (on a GPU) or
+runs in under ``--max-step-seconds`` (on the CPU). Never ``import benchmarks`` (torchrl installs a
+site-packages package of that name). Weights are random; the speed does not depend on their values.
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import copy
+import json
+import platform
+import sys
+import time
+from dataclasses import replace
+from pathlib import Path
+from unittest import mock
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+import torch  # noqa: E402
+from torch.utils.flop_counter import FlopCounterMode  # noqa: E402
+
+from agents.denoiser import PointNetEncoder, SceneDenoiser  # noqa: E402
+from agents.pretrain import (TrainingBatch, batch_loss, draw_batch, load_config, loss_feature_weights,  # noqa: E402
+                             overlap_excess, out_of_bound_excess, training_step)
+from agents.pretrain_data import SceneTensors, stats_for_training  # noqa: E402
+from iarcs_env import get_room  # noqa: E402
+from iarcs_env.datasets.procedural import generate_layouts  # noqa: E402
+from iarcs_env.schedule import NoiseSchedule  # noqa: E402
+
+RECIPE = "experiments/pretrain_bedroom_gpu.yaml"
+PARTS = ("data", "forward", "backward", "optimizer", "ema")
+
+
+def synchronize(device: torch.device) -> None:
+    if device.type == "cuda":
+        torch.cuda.synchronize(device)
+
+
+def matmul_flops(device: torch.device, seconds: float = 2.0) -> float:
+    """Measured matrix-multiply rate (FLOP/s): float32 1024 x 1024 on the CPU, bfloat16 8192 x 8192 on CUDA."""
+    n, dtype = (8192, torch.bfloat16) if device.type == "cuda" else (1024, torch.float32)
+    a, b = torch.randn(n, n, device=device, dtype=dtype), torch.randn(n, n, device=device, dtype=dtype)
+    for _ in range(3):
+        a @ b
+    synchronize(device)
+    reps, t0 = 0, time.perf_counter()
+    while time.perf_counter() - t0 < seconds:
+        a @ b
+        reps += 1
+    synchronize(device)
+    return 2 * n ** 3 * reps / (time.perf_counter() - t0)
+
+
+class Setup:
+    """A training step of ``preset`` at ``batch`` rooms on ``device``: the shipped GPU recipe's losses, bf16 on
+    CUDA, procedural bedrooms resident on the device."""
+
+    def __init__(self, preset: str, batch: int, device: torch.device, data: SceneTensors, stats, compile_: bool):
+        self.cfg = load_config(RECIPE, preset=preset, batch_size=batch,
+                               precision="bf16" if device.type == "cuda" else "fp32")
+        self.spec = get_room(self.cfg.room)
+        self.stats, self.batch, self.device = stats, batch, device
+        self.data = data.to(device)
+        torch.manual_seed(0)
+        self.net = SceneDenoiser(self.cfg.denoiser_config(), self.spec.feature_dim).to(device)
+        self.net.set_metric_scale(stats)
+        self.ema = copy.deepcopy(self.net).requires_grad_(False)
+        self.opt = torch.optim.AdamW(self.net.parameters(), lr=1e-4, fused=True)
+        self.weights = loss_feature_weights(self.cfg, self.spec.feature_dim)
+        self.weights = self.weights.to(device) if self.weights is not None else None
+        self.schedule = NoiseSchedule()
+        self.gen = torch.Generator(device).manual_seed(0)
+        self.model = torch.compile(self.net) if compile_ else self.net
+
+    def next_batch(self) -> TrainingBatch:
+        return draw_batch(self.data, self.cfg, self.spec, self.stats, self.gen, self.batch)
+
+    def step(self, mark=None):
+        return training_step(self.model, self.net, self.ema, self.opt, self.schedule, self.cfg, self.spec, self.stats,
+                             self.weights, self.next_batch, 1e-4, 0.999, mark)
+
+    def seconds_per_step(self, repeats: int) -> float:
+        """Median over ``repeats`` timings of 3 steps each, without synchronisations inside."""
+        times = []
+        for _ in range(repeats):
+            synchronize(self.device)
+            t0 = time.perf_counter()
+            for _ in range(3):
+                self.step()
+            synchronize(self.device)
+            times.append((time.perf_counter() - t0) / 3)
+        return sorted(times)[len(times) // 2]
+
+    def shares(self, repeats: int) -> dict:
+        """Each part's share of the step (synchronised between parts), and the x0-hat losses' share."""
+        totals = dict.fromkeys(PARTS, 0.0)
+        for _ in range(repeats):
+            synchronize(self.device)
+            last = [time.perf_counter()]
+
+            def mark(part):
+                synchronize(self.device)
+                now = time.perf_counter()
+                totals[part] += now - last[0]
+                last[0] = now
+
+            self.step(mark)
+        whole = sum(totals.values())
+        shares = {k: v / whole for k, v in totals.items()}
+        shares["x0_hat_losses"] = self.penalty_seconds(repeats) / (whole / repeats)
+        return shares
+
+    def penalty_seconds(self, repeats: int) -> float:
+        """The overlap and out-of-bound losses, forward and backward, on a batch's predicted x0 (here: x0 + noise)."""
+        cfg, times = self.cfg, []
+        for _ in range(repeats):
+            b = self.next_batch()
+            x0_hat = (b.x0 + 0.05 * b.noise).requires_grad_(True)
+            synchronize(self.device)
+            t0 = time.perf_counter()
+            loss = (overlap_excess(self.spec, self.stats, b.extents, cfg.overlap_weight, cfg.overlap_max_timestep)
+                    (x0_hat, b.x0, b.t)
+                    + out_of_bound_excess(self.spec, self.stats, b.extents, b.points, cfg.out_of_bound_weight,
+                                          cfg.out_of_bound_max_timestep)(x0_hat, b.x0, b.t)).mean()
+            loss.backward()
+            synchronize(self.device)
+            times.append(time.perf_counter() - t0)
+        return sorted(times)[len(times) // 2]
+
+    def flops_per_room(self, reference: bool) -> float:
+        """FLOPs of one forward and backward pass per room (torch's counter); ``reference``: of the plain layers."""
+        batch = self.next_batch()
+        patch = mock.patch.object(PointNetEncoder, "encode", PointNetEncoder.encode_reference) if reference else \
+            contextlib.nullcontext()
+        counter = FlopCounterMode(display=False)
+        with patch, counter, torch.autocast(self.device.type, dtype=torch.bfloat16,
+                                            enabled=self.cfg.precision == "bf16"):
+            batch_loss(self.net, self.schedule, batch, self.cfg, self.spec, self.stats, self.weights).mean().backward()
+        self.net.zero_grad(set_to_none=True)
+        return counter.get_total_flops() / self.batch
+
+
+def fits(preset: str, batch: int, device: torch.device, data, stats, max_step_seconds: float) -> bool:
+    """Whether a step of ``batch`` rooms runs: in memory on a GPU, in under ``max_step_seconds`` on the CPU."""
+    try:
+        setup = Setup(preset, batch, device, data, stats, compile_=False)
+        t0 = time.perf_counter()
+        setup.step()
+        synchronize(device)
+        return device.type == "cuda" or time.perf_counter() - t0 < max_step_seconds
+    except torch.OutOfMemoryError:
+        return False
+    finally:
+        if device.type == "cuda":
+            torch.cuda.empty_cache()
+
+
+def largest_batch(preset: str, device: torch.device, data, stats, max_step_seconds: float, cap: int = 1 << 16) -> int:
+    batch = 512
+    while batch * 2 <= cap and fits(preset, batch * 2, device, data, stats, max_step_seconds):
+        batch *= 2
+    return batch
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--device", default="cpu", help="cpu or cuda (default cpu)")
+    p.add_argument("--presets", default="small,paper", help="comma-separated presets (default small,paper)")
+    p.add_argument("--batches", default="512,max", help="comma-separated batch sizes and/or 'max' (default 512,max)")
+    p.add_argument("--repeats", type=int, default=5, help="timings per row (default 5; each of 3 steps)")
+    p.add_argument("--compile", action="store_true", help="also time the step with torch.compile (CUDA)")
+    p.add_argument("--max-step-seconds", type=float, default=8.0,
+                   help="on the CPU, 'max' is the largest batch whose step takes less (default 8)")
+    p.add_argument("--rooms", type=int, default=2000, help="procedural bedrooms to draw batches from (default 2000)")
+    p.add_argument("--json", help="write the rows to this file")
+    args = p.parse_args(argv)
+    device = torch.device(args.device)
+    if device.type == "cuda" and not torch.cuda.is_available():
+        p.error("--device cuda: torch sees no CUDA GPU here")
+    layouts = generate_layouts("bedroom", args.rooms, seed=0)
+    stats = stats_for_training(layouts, "bedroom", rotation_augment=True)
+    stats = replace(stats, translation_frame="room")
+    data = SceneTensors.from_layouts(layouts, get_room("bedroom").max_objects)
+    matmul = matmul_flops(device)
+    print(f"{platform.processor() or platform.machine()}, torch {torch.__version__}, {torch.get_num_threads()} threads, "
+          f"device {device}" + (f" ({torch.cuda.get_device_name(device)})" if device.type == "cuda" else ""))
+    print(f"matmul ({'bf16' if device.type == 'cuda' else 'fp32'}): {matmul / 1e9:.1f} GFLOP/s")
+    rows = []
+    for preset in args.presets.split(","):
+        batches = []
+        for b in args.batches.split(","):
+            batches.append(largest_batch(preset, device, data, stats, args.max_step_seconds) if b == "max" else int(b))
+        for batch in dict.fromkeys(batches):
+            for compile_ in ((False, True) if args.compile else (False,)):
+                setup = Setup(preset, batch, device, data, stats, compile_)
+                setup.step()  # warm-up (compiles)
+                setup.step()
+                seconds = setup.seconds_per_step(args.repeats)
+                model_flops, executed = setup.flops_per_room(True), setup.flops_per_room(False)
+                row = {"device": str(device), "preset": preset, "batch": batch, "compile": compile_,
+                       "rooms_per_s": batch / seconds, "flops_per_room": model_flops,
+                       "executed_flops_per_room": executed, "matmul_flops_per_s": matmul,
+                       "fraction": batch / seconds * model_flops / matmul, "shares": setup.shares(args.repeats)}
+                rows.append(row)
+                print(f"{preset:6s} batch {batch:6d}{' compiled' if compile_ else ''}: {row['rooms_per_s']:9.0f} rooms/s, "
+                      f"{model_flops / 1e6:.0f} MFLOP/room (executed {executed / 1e6:.0f}), "
+                      f"{row['fraction']:.1%} of the matmul rate; shares "
+                      + ", ".join(f"{k} {v:.0%}" for k, v in row["shares"].items()), flush=True)
+                del setup
+                if device.type == "cuda":
+                    torch.cuda.empty_cache()
+    if args.json:
+        Path(args.json).parent.mkdir(parents=True, exist_ok=True)
+        Path(args.json).write_text(json.dumps({"rows": rows}, indent=1))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
