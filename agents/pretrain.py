@@ -516,7 +516,11 @@ def train(cfg: PretrainConfig, layouts: Sequence[Layout] | None = None, max_step
         ema.load_state_dict(saved["ema"])
         opt.load_state_dict(saved["optimizer"])
         step = int(saved["step"])
-        gen.set_state(saved["rng"]["generator"])
+        if saved["rng"].get("device", "cpu") == device.type:
+            gen.set_state(saved["rng"]["generator"])
+        else:  # the batches' stream was drawn on another kind of device: a new one starts from this step
+            gen.manual_seed(distributed.rank_seed(cfg.seed + 1) + step)
+            log(f"{state_path} drew its batches on {saved['rng'].get('device', 'cpu')}: a new random stream starts")
         torch.set_rng_state(saved["rng"]["torch"])
         if device.type == "cuda" and "cuda" in saved["rng"]:
             torch.cuda.set_rng_state_all(saved["rng"]["cuda"])
@@ -538,7 +542,7 @@ def train(cfg: PretrainConfig, layouts: Sequence[Layout] | None = None, max_step
 
     def save_checkpoint():
         state = {"step": step, "model": net.state_dict(), "ema": ema.state_dict(), "optimizer": opt.state_dict(),
-                 "rng": {"generator": gen.get_state(), "torch": torch.get_rng_state()},
+                 "rng": {"generator": gen.get_state(), "device": device.type, "torch": torch.get_rng_state()},
                  "config": asdict(cfg), "stats": stats.to_json()}
         if device.type == "cuda":
             state["rng"]["cuda"] = torch.cuda.get_rng_state_all()

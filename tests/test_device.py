@@ -114,3 +114,40 @@ def test_info_reports_the_device_models_library_and_agent(tmp_path, monkeypatch,
     facts = json.loads(capsys.readouterr().out)
     assert facts["llm_keys_set"] == ["GEMINI_API_KEY"] and facts["device"]["auto"] == str(resolve_device("auto"))
     assert facts["packages"]["torch"] == torch.__version__ and len(facts["device"]["gpus"]) == torch.cuda.device_count()
+
+
+@needs_cuda
+def test_the_pretraining_step_never_waits_for_the_gpu():
+    """A training step on CUDA (batch drawn and augmented on the device, losses, backward, fused AdamW, EMA)
+    queues its work without one host synchronisation: torch's sync debug mode turns any into an error."""
+    import copy
+    from dataclasses import replace
+
+    from agents.denoiser import SceneDenoiser
+    from agents.pretrain import draw_batch, load_config, loss_feature_weights, training_step
+    from agents.pretrain_data import SceneTensors, stats_for_training
+    from iarcs_env import get_room
+    from iarcs_env.schedule import NoiseSchedule
+    from test_pretrain import toy_bedrooms
+
+    cfg = load_config("experiments/pretrain_bedroom_gpu.yaml", batch_size=64, precision="bf16")
+    spec, rooms, device = get_room("bedroom"), toy_bedrooms(80), torch.device("cuda")
+    stats = replace(stats_for_training(rooms, "bedroom", True), translation_frame="room")
+    data = SceneTensors.from_layouts(rooms, spec.max_objects).to(device)
+    net = SceneDenoiser(cfg.denoiser_config(), spec.feature_dim).to(device)
+    net.set_metric_scale(stats)
+    ema = copy.deepcopy(net).requires_grad_(False)
+    opt = torch.optim.AdamW(net.parameters(), lr=1e-4, fused=True)
+    weights = loss_feature_weights(cfg, spec.feature_dim).to(device)
+    gen, schedule = torch.Generator(device).manual_seed(0), NoiseSchedule()
+    step = lambda: training_step(net, net, ema, opt, schedule, cfg, spec, stats, weights,  # noqa: E731
+                                 lambda: draw_batch(data, cfg, spec, stats, gen, 64), 1e-4, 0.999)
+    step()  # first calls may set things up (constants moved to the device, kernels chosen)
+    torch.cuda.synchronize()
+    torch.cuda.set_sync_debug_mode("error")
+    try:
+        for _ in range(3):
+            loss, grad_norm = step()
+    finally:
+        torch.cuda.set_sync_debug_mode("default")
+    assert torch.isfinite(loss) and torch.isfinite(grad_norm)
