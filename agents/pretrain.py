@@ -551,17 +551,20 @@ def train(cfg: PretrainConfig, layouts: Sequence[Layout] | None = None, max_step
                            meta={"step": step, "preset": cfg.preset, "dataset": cfg.dataset, "room": spec.name})
         result.prior_path = prior.save(out / PRIOR_FILE)
 
-    def validate() -> float | None:
-        if val is None:
-            return None
-        g = torch.Generator(device).manual_seed(1234)  # the same t and noise every time
+    def ema_loss(rooms: SceneTensors) -> float:
+        """The EMA weights' plain loss on ``rooms`` (not augmented), with the same t and noise every time."""
+        g = torch.Generator(device).manual_seed(1234)
         losses = []
         with torch.no_grad():
-            for i in range(0, len(val), 256):
-                idx = torch.arange(i, min(i + 256, len(val)), device=device)
-                x0, floor = encode_batch(spec, stats, *val.batch(idx))
+            for i in range(0, len(rooms), 256):
+                idx = torch.arange(i, min(i + 256, len(rooms)), device=device)
+                x0, floor = encode_batch(spec, stats, *rooms.batch(idx))
                 losses.append(schedule.training_loss(lambda x, t: ema(x, t, floor), x0, g, reduction="none"))
         return float(torch.cat(losses).mean())
+
+    # as many training rooms as held-out ones: the gap between their losses measures overfitting
+    seen = data.batch(torch.arange(min(len(val), len(data)), device=device)) if val is not None else None
+    seen = SceneTensors(*seen) if seen is not None else None
 
     per_rank = cfg.batch_size // processes
     model = compiled(net, lambda: draw_batch(data, cfg, spec, stats, gen, per_rank), schedule, cfg, spec, stats,
@@ -603,12 +606,14 @@ def train(cfg: PretrainConfig, layouts: Sequence[Layout] | None = None, max_step
                         writer.add_scalar("train/lr", lr, step)
                         writer.add_scalar("train/grad_norm", float(grad_norm), step)
                     if step % cfg.eval_every == 0 or step == stop:
-                        v = validate()
-                        if v is not None:
+                        if val is not None:
+                            v, fit = ema_loss(val), ema_loss(seen)
                             result.val_losses.append((step, v))
-                            record["val_loss_ema"] = v
+                            record.update(val_loss_ema=v, train_rooms_loss_ema=fit)
                             if writer is not None:
                                 writer.add_scalar("val/loss_ema", v, step)
+                                writer.add_scalar("val/train_rooms_loss_ema", fit, step)
+                                writer.add_scalar("val/overfit_gap", v - fit, step)
                     metrics.write(json.dumps(record) + "\n")
                     metrics.flush()
                     if step % cfg.checkpoint_every == 0 or step == stop:

@@ -151,7 +151,7 @@ def test_pretraining_lowers_the_loss(tmp_path, precision):
     for name in (STATE_FILE, PRIOR_FILE, "config.yaml", "dataset_stats.json", "metrics.jsonl"):
         assert (out / name).exists(), name
     rows = [json.loads(line) for line in (out / "metrics.jsonl").read_text().splitlines()]
-    assert rows[-1]["step"] == 60 and "val_loss_ema" in rows[-1]
+    assert rows[-1]["step"] == 60 and "val_loss_ema" in rows[-1] and "train_rooms_loss_ema" in rows[-1]
     prior = ScenePrior.load(out / PRIOR_FILE)
     assert prior.meta["step"] == 60
     scenes = prior.sample([l.floor for l in toy_bedrooms(2, seed=9)], num_steps=5,
