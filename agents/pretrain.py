@@ -567,8 +567,8 @@ def train(cfg: PretrainConfig, layouts: Sequence[Layout] | None = None, max_step
     seen = SceneTensors(*seen) if seen is not None else None
 
     per_rank = cfg.batch_size // processes
-    model = compiled(net, lambda: draw_batch(data, cfg, spec, stats, gen, per_rank), schedule, cfg, spec, stats,
-                     weights, log) if cfg.compile and step < stop else net
+    example = lambda: draw_batch(data, cfg, spec, stats, torch.Generator(device).manual_seed(0), per_rank)  # noqa: E731
+    model = compiled(net, example, schedule, cfg, spec, stats, weights, log) if cfg.compile and step < stop else net
     bar = tqdm(total=stop, initial=step, disable=not progress, desc=f"pretrain {spec.name}", dynamic_ncols=True)
     running, loss_sum, summed = None, torch.zeros((), device=device), 0
     save_seconds = 0.0  # how long the last checkpoint (and validation) took: kept free before the deadline

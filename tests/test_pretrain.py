@@ -414,3 +414,32 @@ def test_the_fast_training_step_matches_a_plain_reference_step(tmp_path):
     for a, b in zip(list(nets[0].parameters()) + list(emas[0].parameters()),
                     list(nets[1].parameters()) + list(emas[1].parameters())):
         assert torch.allclose(a, b, rtol=1e-4, atol=1e-6)
+
+
+def test_a_failed_compile_falls_back_to_eager_training(tmp_path, monkeypatch):
+    """``compile: true`` where the compiler breaks (here: a compiled model that raises as a missing backend would):
+    one log line with the reason, then the same run as without it."""
+    def broken_compile(model, **kw):
+        def call(*args, **kwargs):
+            raise RuntimeError("backend 'inductor' failed: no C++ compiler")
+        return call
+
+    monkeypatch.setattr(torch, "compile", broken_compile)
+    lines, rooms = [], toy_bedrooms(40)
+    result = train(tiny_config(tmp_path / "c", steps=5, compile=True), rooms, progress=False, log=lines.append)
+    plain = train(tiny_config(tmp_path / "p", steps=5), rooms, progress=False, log=lambda m: None)
+    assert any(line.startswith("torch.compile failed (RuntimeError: backend 'inductor' failed") for line in lines)
+    assert result.step == 5 and result.losses == plain.losses
+
+
+def test_a_time_budget_stops_the_run_with_a_checkpoint(tmp_path):
+    cfg = tiny_config(tmp_path, steps=100_000, lr_schedule="constant", checkpoint_every=1000, log_every=1000)
+    result = train(cfg, toy_bedrooms(40), progress=False, log=lambda m: None, time_budget=3.0)
+    assert result.stopped_by_deadline and 0 < result.step < 100_000 and result.seconds < 3.0 + 2.0
+    state = torch.load(tmp_path / "run" / STATE_FILE, weights_only=True)
+    assert state["step"] == result.step and ScenePrior.load(tmp_path / "run" / PRIOR_FILE).meta["step"] == result.step
+    assert lr_at(50_000, cfg) == cfg.lr  # constant after the warm-up
+    # a new run continues it: weights, EMA and optimizer state
+    more = train(tiny_config(tmp_path / "more", steps=3, init_from=str(tmp_path / "run")), toy_bedrooms(40),
+                 progress=False, log=lambda m: None)
+    assert more.step == 3 and more.resumed_from == 0
