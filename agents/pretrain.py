@@ -569,7 +569,9 @@ def train(cfg: PretrainConfig, layouts: Sequence[Layout] | None = None, max_step
     per_rank = cfg.batch_size // processes
     example = lambda: draw_batch(data, cfg, spec, stats, torch.Generator(device).manual_seed(0), per_rank)  # noqa: E731
     model = compiled(net, example, schedule, cfg, spec, stats, weights, log) if cfg.compile and step < stop else net
-    bar = tqdm(total=stop, initial=step, disable=not progress, desc=f"pretrain {spec.name}", dynamic_ncols=True)
+    until = f" until {time.strftime('%H:%M:%S', time.localtime(time.time() + time_budget))}" if time_budget else ""
+    bar = tqdm(total=None if time_budget else stop, initial=step, disable=not progress,  # a clock's run: no total
+               desc=f"pretrain {spec.name}{until}", dynamic_ncols=True, unit="step")
     running, loss_sum, summed = None, torch.zeros((), device=device), 0
     save_seconds = 0.0  # how long the last checkpoint (and validation) took: kept free before the deadline
     net.train()
