@@ -10,6 +10,12 @@ of the paper's Table 2). ``--render-issues DIR`` writes a PNG per scene with a p
 outlined red, out-of-bound objects magenta, unreachable free floor hatched orange. ``--task NAME``
 (repeatable, or ``all``) adds ``task_success_<name>``, the fraction of scenes passing the paper task's
 hand-written checker (:mod:`iarcs_env.tasks`), to both reports, and each scene's pass/fail to ``per_scene``.
+
+Both reports also have a ``relations`` section (:mod:`iarcs_env.relation_fidelity`; definitions in
+``docs/design.md``, "Relations"): per relation of the room type, the rooms with its co-occurrence, the rate at
+which it holds given the co-occurrence and over all rooms, with ``--reference`` side by side with the
+reference's and their ratio (relation recall); ``per_scene`` says, for each relation whose objects a scene has,
+whether it holds.
 """
 
 from __future__ import annotations
@@ -84,6 +90,7 @@ def cmd_evaluate(args) -> int:
                               features=features if reference is not None else None,
                               distribution_kwargs={"size": args.render_size, "seed": args.seed})
     scenes = result.pop("scenes")
+    relation_flags, result["relations"] = relations_report(layouts, reference)
     passed = {}
     if tasks:
         from iarcs_env.tasks import task_results
@@ -102,7 +109,8 @@ def cmd_evaluate(args) -> int:
         {"id": s.id, "objects": s.n_objects, "ground_objects": s.n_ground, "colliding": s.colliding, "out_of_bound": s.out_of_bound,
          "unreachable_objects": s.unreachable_objects, "R_walkable": round(s.walkable, 6),
          "penetration_m3": round(s.penetration, 6), "out_area_m2": round(s.out_area, 6),
-         **({"tasks": {name: bool(ok[i]) for name, ok in passed.items()}} if passed else {})}
+         **({"tasks": {name: bool(ok[i]) for name, ok in passed.items()}} if passed else {}),
+         "relations": {name: bool(holds[i]) for name, (co, holds) in relation_flags.items() if co[i]}}
         for i, s in enumerate(scenes)]
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(json.dumps(result, indent=1))
@@ -111,12 +119,33 @@ def cmd_evaluate(args) -> int:
     print(markdown_table(result, args.name or Path(args.scenes).stem))
     if tasks:
         print("\n" + task_table(result))
+    print("\n" + relations_table(result))
     print(f"\nfeature extractor: {result['feature_extractor']}")
     print(f"report: {out}\ntable: {md}")
     if args.render_issues:
         n = render_issues(layouts, scenes, Path(args.render_issues), args.max_renders)
         print(f"issue renders: {n} in {args.render_issues}")
     return 0
+
+
+def relations_report(layouts, reference) -> tuple[dict, dict]:
+    """(per-scene flags of the scenes, the report's ``relations`` section): per relation its definition, the
+    scenes' rates, and with a reference the reference's rates and the relation recall."""
+    from iarcs_env.relation_fidelity import compare_relations, rates_of, relation_flags, relation_rates, room_relations
+
+    flags = relation_flags(layouts)
+    section = compare_relations({name: rates_of(*f) for name, f in flags.items()},
+                                relation_rates(reference) if reference is not None else None)
+    for r in room_relations(layouts[0].room_type):
+        section[r.name] = {"definition": {"co_occurrence": r.co_occurrence, "holds": r.holds}, **section[r.name]}
+    return flags, section
+
+
+def relations_table(result: dict) -> str:
+    """The Markdown table of the report's ``relations`` section."""
+    from iarcs_env.relation_fidelity import relation_table
+
+    return relation_table(result["relations"])
 
 
 def _tasks(names: list[str]) -> list[str]:
@@ -202,6 +231,15 @@ def markdown_report(result: dict, name: str) -> str:
               "/ free cells; R_reach = ground objects whose inflated footprint touches that region; R_off_floor (our "
               "addition) = ground objects whose bottom is more than 0.05 m above or below the floor; R_misaligned (our "
               "addition) = ground objects turned more than 10° away from every wall direction.", ""]
+    if result.get("relations"):
+        lines += ["## Relations", "", relations_table(result), "",
+                  "Per relation: rooms with its co-occurrence (the objects it needs), the rate at which it holds given "
+                  "the co-occurrence, and over all rooms"
+                  + ("; recall = the scenes' rate over all rooms / the reference's (– where the reference's is 0)"
+                     if result.get("reference_file") else "")
+                  + ". Definitions: `docs/design.md`, section Relations:", ""]
+        lines += [f"- {name}: co-occurrence {v['definition']['co_occurrence']}; holds: {v['definition']['holds']}"
+                  for name, v in result["relations"].items()] + [""]
     if any(k.startswith("task_success_") for k in result):
         lines += ["Task success: the fraction of scenes passing the task's hand-written checker (definitions in "
                   "`iarcs_env/tasks.py`).", ""]
