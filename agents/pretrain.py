@@ -34,7 +34,7 @@ from . import distributed
 from .config import check_device, dataclass_from_dict, load_yaml_config
 from .denoiser import DenoiserConfig, SceneDenoiser, ScenePrior, atomic_torch_save
 from .pretrain_data import (SceneTensors, encode_batch, load_training_layouts, resolve_dataset, stats_for_training,
-                            training_split)
+                            training_data, training_split)
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 STATE_FILE = "train_state.pt"
@@ -467,10 +467,8 @@ def train(cfg: PretrainConfig, layouts: Sequence[Layout] | None = None, max_step
         _check_resumable(saved["config"], cfg, state_path)
     init, init_state = load_init(cfg) if saved is None and cfg.init_from else (None, None)
 
-    # data
-    if layouts is None:
-        layouts = load_training_layouts(cfg, log)
-    train_layouts, val_layouts = training_split(layouts, cfg)
+    # data (procedural rooms: read from the cache that the first run writes)
+    data, val, stats = training_data(cfg, layouts, log, progress=progress, with_stats=saved is None)
     if saved is not None:
         stats = DatasetStats.from_json(saved["stats"], spec.name)
         if (stats.translation_frame == "room") != cfg.denoiser_config().room_frame:
@@ -479,7 +477,6 @@ def train(cfg: PretrainConfig, layouts: Sequence[Layout] | None = None, max_step
                 f"{cfg.preset!r} preset of this iARCS uses the other one; use another output folder (--out) to "
                 "start a new run, or resume with the iARCS version that wrote it")
     else:
-        stats = stats_for_training(train_layouts, spec.name, cfg.rotation_augment)
         stats.translation_frame = "room" if cfg.denoiser_config().room_frame else "dataset"
         if init is not None:  # the network's inputs keep the scaling it was trained with
             for name in ("bounds_translations", "bounds_sizes", "bounds_angles", "translation_frame"):
@@ -487,8 +484,6 @@ def train(cfg: PretrainConfig, layouts: Sequence[Layout] | None = None, max_step
         if main:
             stats.save(out / "dataset_stats.json")
             _write_yaml(out / "config.yaml", asdict(cfg))
-    data = SceneTensors.from_layouts(train_layouts, spec.max_objects)
-    val = SceneTensors.from_layouts(val_layouts, spec.max_objects) if val_layouts else None
 
     # model, EMA, optimizer, randomness
     torch.manual_seed(cfg.seed)

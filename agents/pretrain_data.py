@@ -4,7 +4,10 @@ permutations) done on the tensors."""
 
 from __future__ import annotations
 
+import json
 import math
+import os
+import time
 from dataclasses import dataclass, fields
 from pathlib import Path
 from typing import TYPE_CHECKING, Callable, Sequence
@@ -103,14 +106,32 @@ def encode_batch(spec, stats: DatasetStats, labels, trans, half, yaws, pts, exte
 
 
 
-def stats_for_training(layouts: Sequence[Layout], room: str, rotation_augment: bool) -> DatasetStats:
-    """Dataset statistics; with rotation augmentation the translation bounds cover all four rotations."""
+def stats_for_training(layouts: Sequence[Layout], room: str, rotation_augment: bool,
+                       rotated: np.ndarray | None = None) -> DatasetStats:
+    """Dataset statistics; with rotation augmentation the translation bounds cover all four rotations
+    (``rotated``: the rooms' :func:`rotated_translation_bounds`, when they are at hand)."""
     stats = DatasetStats.from_layouts(layouts, room)
     if rotation_augment:
-        rotated = [lay.centred().rotated(k * math.pi / 2) for lay in layouts for k in (1, 2, 3)]
-        wide = DatasetStats.from_layouts(list(layouts) + rotated, room)
-        stats.bounds_translations = wide.bounds_translations
+        r = rotated_translation_bounds(layouts) if rotated is None else rotated
+        # the bounds of the rooms and their rotated copies together (the plain bounds are 0 with no objects)
+        lo = np.minimum(np.array(stats.bounds_translations[:3]), r[:, :3].min(0, initial=np.inf))
+        hi = np.maximum(np.array(stats.bounds_translations[3:]), r[:, 3:].max(0, initial=-np.inf))
+        stats.bounds_translations = [float(v) for v in np.concatenate([lo, hi])]
     return stats
+
+
+def rotated_translation_bounds(layouts: Sequence[Layout]) -> np.ndarray:
+    """(S, 6): per room, the least and greatest (x, y, z) of its objects' centres in its copies rotated by 90,
+    180 and 270 degrees (each centred on its floor as :meth:`DatasetStats.from_layouts` centres a room);
+    +inf and -inf for a room without objects. Per room, so that chunks of rooms can be done apart."""
+    out = np.empty((len(layouts), 6))
+    out[:, :3], out[:, 3:] = np.inf, -np.inf
+    for i, lay in enumerate(layouts):
+        if len(lay):
+            c = lay.centred()
+            t = np.concatenate([c.rotated(k * math.pi / 2).centred().translations for k in (1, 2, 3)])
+            out[i, :3], out[i, 3:] = t.min(0), t.max(0)
+    return out
 
 
 def load_training_layouts(cfg: "PretrainConfig", log: Callable[[str], None] = print) -> list[Layout]:
@@ -135,8 +156,219 @@ def training_split(layouts: Sequence[Layout], cfg: "PretrainConfig") -> tuple[li
     after dropping rooms with more objects than the room type has slots."""
     spec = get_room(cfg.room)
     layouts = [l for l in layouts if len(l) <= spec.max_objects]
-    order = np.random.default_rng(cfg.data_seed).permutation(len(layouts))
-    n_val = min(cfg.val_scenes, len(layouts) // 10)
-    return [layouts[i] for i in order[n_val:]], [layouts[i] for i in order[:n_val]]
+    train_idx, val_idx = split_indices(len(layouts), cfg)
+    return [layouts[i] for i in train_idx], [layouts[i] for i in val_idx]
 
 
+def split_indices(num_rooms: int, cfg: "PretrainConfig") -> tuple[np.ndarray, np.ndarray]:
+    """(training, validation) indices of :func:`training_split` among ``num_rooms`` kept rooms."""
+    order = np.random.default_rng(cfg.data_seed).permutation(num_rooms)
+    n_val = min(cfg.val_scenes, num_rooms // 10)
+    return order[n_val:], order[:n_val]
+
+
+# --------------------------------------------------------------------------------------------------------
+# The data of a run: computed, or for procedural rooms read from a cache
+# --------------------------------------------------------------------------------------------------------
+#: Boundary points per floor in the training tensors.
+FLOOR_POINTS = 256
+#: Version of what the cache holds and how it is computed: bump it whenever the tensors or statistics of
+#: :func:`training_data` change for the same rooms (:meth:`SceneTensors.from_layouts`, :func:`stats_for_training`,
+#: :func:`training_split`); the procedural rooms themselves are versioned by ``GENERATOR_VERSION``.
+CACHE_VERSION = 1
+#: The cache's root folder (default ``out/cache``, from the working directory); the pretraining data lie in
+#: its ``pretrain_data`` folder.
+CACHE_ENV = "IARCS_CACHE_DIR"
+_CACHE_FORMAT = "iarcs pretraining data"
+#: Rooms per worker process at least: fewer rooms are generated in fewer processes (a small dataset in this one).
+ROOMS_PER_PROCESS = 500
+
+
+def training_data(cfg: "PretrainConfig", layouts: Sequence[Layout] | None = None,
+                  log: Callable[[str], None] = print, progress: bool = True,
+                  with_stats: bool = True) -> tuple[SceneTensors, SceneTensors | None, DatasetStats | None]:
+    """(training rooms, validation rooms or None, statistics of the training rooms) of ``cfg``'s dataset, or of
+    ``layouts`` when given. Procedural rooms (``dataset: procedural``) come from a cache file keyed by
+    :func:`cache_key` (:func:`cache_path`), made on the first run by generating the rooms in one process per
+    core; other datasets are computed. ``with_stats=False`` skips the statistics where they would be computed
+    (a resumed run has its own; None then)."""
+    from iarcs_env.datasets import PROCEDURAL_NAMES
+
+    spec = get_room(cfg.room)
+    if layouts is None and resolve_dataset(cfg.dataset).lower() in PROCEDURAL_NAMES:
+        return procedural_training_data(cfg, log, progress)
+    if layouts is None:
+        layouts = load_training_layouts(cfg, log)
+    train_layouts, val_layouts = training_split(layouts, cfg)
+    stats = stats_for_training(train_layouts, spec.name, cfg.rotation_augment) if with_stats else None
+    data = SceneTensors.from_layouts(train_layouts, spec.max_objects, FLOOR_POINTS, **_order_option(cfg))
+    val = SceneTensors.from_layouts(val_layouts, spec.max_objects, FLOOR_POINTS, **_order_option(cfg)) \
+        if val_layouts else None
+    return data, val, stats
+
+
+def _order_option(cfg: "PretrainConfig") -> dict:
+    """``canonical_order`` for :meth:`SceneTensors.from_layouts` where the config asks for it."""
+    return {"canonical_order": True} if getattr(cfg, "canonical_order", False) else {}
+
+
+def cache_key(cfg: "PretrainConfig") -> dict:
+    """What the cached pretraining data of ``cfg``'s procedural rooms depend on."""
+    from iarcs_env.datasets.procedural import GENERATOR_VERSION
+
+    spec = get_room(cfg.room)
+    return {"room": spec.name, "num_scenes": int(cfg.num_scenes), "data_seed": int(cfg.data_seed),
+            "val_scenes": int(cfg.val_scenes), "rotation_augment": bool(cfg.rotation_augment),
+            "canonical_order": bool(getattr(cfg, "canonical_order", False)), "num_slots": spec.max_objects,
+            "num_points": FLOOR_POINTS, "generator_version": GENERATOR_VERSION, "cache_version": CACHE_VERSION}
+
+
+def cache_dir() -> Path:
+    """The folder of the cached pretraining data: ``$IARCS_CACHE_DIR/pretrain_data``, by default
+    ``out/cache/pretrain_data`` under the working directory."""
+    return Path(os.environ.get(CACHE_ENV) or "out/cache").expanduser() / "pretrain_data"
+
+
+def cache_path(key: dict) -> Path:
+    """The cache file of ``key`` (:func:`cache_key`): every part of the key is in its name."""
+    name = (f"{key['room']}-n{key['num_scenes']}-seed{key['data_seed']}-val{key['val_scenes']}"
+            f"-rot{int(key['rotation_augment'])}" + ("-canonical" if key["canonical_order"] else "")
+            + f"-slots{key['num_slots']}-p{key['num_points']}-gen{key['generator_version']}"
+            f"-v{key['cache_version']}.pt")
+    return cache_dir() / name
+
+
+def procedural_training_data(cfg: "PretrainConfig", log: Callable[[str], None] = print,
+                             progress: bool = True) -> tuple[SceneTensors, SceneTensors | None, DatasetStats]:
+    """:func:`training_data` of procedural rooms: read from the cache, or built and written to it. Under
+    ``torchrun`` rank 0 builds and writes, the other ranks wait for it and read the file."""
+    from . import distributed
+
+    key = cache_key(cfg)
+    path = cache_path(key)
+    if distributed.world_size() > 1 and not distributed.is_main():
+        written = distributed.broadcast_object(None)  # waits for rank 0's cache
+        found = _read_cache(path, key, log) if written else None
+        return found if found is not None else _build(cfg, log, progress=False)
+    found = _read_cache(path, key, log)
+    if found is None:
+        found = _build(cfg, log, progress)
+        written = _write_cache(path, key, *found, log)
+    else:
+        written = True
+    if distributed.world_size() > 1:
+        distributed.broadcast_object(written)
+    return found
+
+
+def _build(cfg: "PretrainConfig", log: Callable[[str], None], progress: bool):
+    """The procedural rooms' tensors and statistics, generated in one process per core (for 500 rooms or more)."""
+    from functools import partial
+
+    from iarcs_env.datasets.procedural import available_cores, map_room_chunks
+
+    spec = get_room(cfg.room)
+    n = int(cfg.num_scenes)
+    processes = max(1, min(available_cores(), n // ROOMS_PER_PROCESS))
+    log(f"generating {n:,} procedural {spec.name}s in {processes} process{'es' if processes > 1 else ''}")
+    t0 = time.perf_counter()
+    work = partial(_chunk_data, num_slots=spec.max_objects, options=_order_option(cfg),
+                   rotation=cfg.rotation_augment)
+    layouts, arrays, rotated, dropped = [], [], [], 0
+    for rooms, tensors, rot, lost in map_room_chunks(spec.name, n, work, seed=cfg.data_seed, processes=processes,
+                                                     progress=progress):
+        layouts += rooms
+        dropped += lost
+        if rooms:
+            arrays.append(tensors)
+            rotated.append(rot)
+    if dropped:
+        log(f"dropped {dropped} of {n} rooms with more than {spec.max_objects} objects")
+    if not layouts:
+        raise ValueError(f"{cfg.dataset}: no {spec.name} rooms with at most {spec.max_objects} objects")
+    names = [f.name for f in fields(SceneTensors)]
+    stacked = {name: np.concatenate([a[name] for a in arrays]) for name in names}
+    train_idx, val_idx = split_indices(len(layouts), cfg)
+    rot = np.concatenate(rotated)[train_idx] if cfg.rotation_augment else None
+    stats = stats_for_training([layouts[i] for i in train_idx], spec.name, cfg.rotation_augment, rot)
+    data = SceneTensors(*(torch.from_numpy(stacked[name][train_idx]) for name in names))
+    val = SceneTensors(*(torch.from_numpy(stacked[name][val_idx]) for name in names)) if len(val_idx) else None
+    log(f"generated {len(layouts):,} rooms in {time.perf_counter() - t0:.1f} s")
+    return data, val, stats
+
+
+def _chunk_data(rooms: list[Layout], num_slots: int, options: dict, rotation: bool):
+    """In a worker process: a chunk of rooms' tensors (as NumPy arrays) and rotated bounds, without the rooms
+    with more objects than ``num_slots``; (rooms, arrays, bounds, number dropped)."""
+    kept = [l for l in rooms if len(l) <= num_slots]
+    if not kept:
+        return [], None, None, len(rooms)
+    t = SceneTensors.from_layouts(kept, num_slots, FLOOR_POINTS, **options)
+    arrays = {f.name: getattr(t, f.name).numpy() for f in fields(t)}
+    return kept, arrays, rotated_translation_bounds(kept) if rotation else None, len(rooms) - len(kept)
+
+
+def _pack(t: SceneTensors | None) -> dict | None:
+    """Plain tensors of ``t`` for the file; the floor normals in float16 where that is exact, bit for bit (the
+    axis-aligned walls' -1, 0, 1: a quarter less file)."""
+    if t is None:
+        return None
+    out = {f.name: getattr(t, f.name) for f in fields(t)}
+    normals = t.floor_points[..., 2:]
+    if torch.equal(normals.half().float().view(torch.int32), normals.view(torch.int32)):
+        out["floor_points"] = t.floor_points[..., :2].contiguous()
+        out["floor_normals_half"] = normals.half()
+    return out
+
+
+def _unpack(d: dict) -> SceneTensors:
+    d = dict(d)
+    if "floor_normals_half" in d:
+        d["floor_points"] = torch.cat([d["floor_points"], d.pop("floor_normals_half").float()], -1)
+    t = SceneTensors(**{f.name: d.pop(f.name) for f in fields(SceneTensors)})
+    if d:
+        raise ValueError(f"unknown entries {sorted(d)}")
+    rows = {f.name: getattr(t, f.name).shape[0] for f in fields(t)}
+    if len(set(rows.values())) != 1:
+        raise ValueError(f"tensors of different lengths {rows}")
+    return t
+
+
+def _write_cache(path: Path, key: dict, data: SceneTensors, val: SceneTensors | None, stats: DatasetStats,
+                 log: Callable[[str], None]) -> bool:
+    """Write the cache file atomically (a temporary file renamed); False, with a log line, when that fails."""
+    from .denoiser import atomic_torch_save
+
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        atomic_torch_save({"format": _CACHE_FORMAT, "key": key, "train": _pack(data), "val": _pack(val),
+                           "stats": json.dumps(stats.to_json())}, path)
+    except OSError as err:
+        log(f"could not write the data cache {path} ({err}); the next run generates the rooms again")
+        return False
+    log(f"cached at {path} ({path.stat().st_size / 1e6:.1f} MB)")
+    return True
+
+
+def _read_cache(path: Path, key: dict, log: Callable[[str], None]):
+    """(data, val, stats) from the cache file, or None (no file; or an unreadable or foreign one, logged)."""
+    if not path.exists():
+        return None
+    try:
+        saved = torch.load(path, map_location="cpu", weights_only=True)
+        if not isinstance(saved, dict) or saved.get("format") != _CACHE_FORMAT:
+            raise ValueError("not a pretraining data cache")
+        if saved.get("key") != key:
+            theirs = saved.get("key") if isinstance(saved.get("key"), dict) else {}
+            differ = [f"{k}={theirs.get(k)!r}" for k in key if theirs.get(k) != key[k]]
+            raise ValueError(f"it holds other data ({', '.join(differ) or 'another key'})")
+        data = _unpack(saved["train"])
+        val = _unpack(saved["val"]) if saved["val"] is not None else None
+        stats = DatasetStats.from_json(json.loads(saved["stats"]), key["room"])
+    except Exception as err:  # noqa: BLE001 - whatever is wrong with the file, the data are built again
+        log(f"ignored the data cache {path}: {type(err).__name__}: {str(err).splitlines()[0] if str(err) else ''}; "
+            "building it again")
+        return None
+    log(f"read {len(data):,} training" + (f" and {len(val):,} validation" if val is not None else "")
+        + f" rooms from cache {path}")
+    return data, val, stats

@@ -41,6 +41,12 @@ def toy_bedrooms(n: int, seed: int = 0) -> list[Layout]:
 
 
 @pytest.fixture(autouse=True)
+def data_cache(tmp_path, monkeypatch):
+    """Procedural rooms' data cached in the test's folder, not the working directory's out/cache."""
+    monkeypatch.setenv("IARCS_CACHE_DIR", str(tmp_path / "cache"))
+
+
+@pytest.fixture(autouse=True)
 def one_thread():
     """Tiny models run fastest (and reproducibly) on one thread; restore the setting afterwards."""
     n = torch.get_num_threads()

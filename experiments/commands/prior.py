@@ -8,7 +8,12 @@ from experiments.cli import add_device_option
 
 
 def register(sub) -> None:
-    p = sub.add_parser("pretrain", help="pretrain a floor-conditioned scene prior (resumes an interrupted run)")
+    p = sub.add_parser("pretrain", help="pretrain a floor-conditioned scene prior (resumes an interrupted run)",
+                       description="Pretrain a floor-conditioned scene prior (resumes an interrupted run). Procedural "
+                                   "rooms are generated once, in one process per core, and cached with their tensors "
+                                   "and statistics in out/cache/pretrain_data/ under the working directory (the "
+                                   "IARCS_CACHE_DIR environment variable moves out/cache), so that the next run with "
+                                   "the same data starts training within seconds.")
     p.add_argument("--config", required=True, help="YAML config, e.g. experiments/pretrain_bedroom.yaml")
     p.add_argument("--out", default=None, help="run folder (default: the config's 'out')")
     p.add_argument("--steps", type=int, default=None, help="total optimizer steps (default: the config's)")

@@ -35,7 +35,9 @@ All objects are axis-aligned (yaw a multiple of pi/2), as 99.8% of real 3D-FRONT
 from __future__ import annotations
 
 import math
+import os
 from dataclasses import dataclass
+from typing import Callable, Iterator
 
 import numpy as np
 import shapely
@@ -44,6 +46,11 @@ from shapely.geometry import Polygon, box
 from ..floorplan import FloorPlan
 from ..rooms import get_room
 from ..scene import Layout
+
+#: Version of the generated rooms. Bump it whenever :func:`generate_room` gives other rooms for the same
+#: (room type, index, seed, flaw rate): caches of generated data (the pretraining data of
+#: :func:`agents.pretrain_data.training_data`) are keyed by it, and a bump makes them be built again.
+GENERATOR_VERSION = 1
 
 #: Smallest gap (m) between two objects, or an object and a wall, in a flawless placement.
 EPS = 0.005
@@ -1106,26 +1113,102 @@ def generate_room(room_type: str, index: int, seed: int = 0, flaw_rate: float = 
 
 
 def generate_layouts(room_type: str, num_scenes: int, seed: int = 0, flaw_rate: float = 1.0,
-                     progress: bool = False) -> list[Layout]:
+                     progress: bool = False, processes: int | None = 1) -> list[Layout]:
     """Generate ``num_scenes`` synthetic 3D-FRONT rooms of ``room_type`` (bedroom, livingroom, diningroom).
 
     Deterministic for a ``seed``. ``flaw_rate`` scales the probability of the deliberate flaws real
     3D-FRONT has (0: no overlapping ground objects and every footprint inside the floor; 1: rates like
     the real data). Floors are centred at the origin; ids are ``procedural-<room>-<index:05d>``.
-    ``progress=True`` shows a tqdm bar.
+    ``progress=True`` shows a tqdm bar. ``processes``: worker processes generating chunks of rooms in
+    parallel (None or 0: one per available core); the rooms are the same whatever the number.
     """
+    if processes == 1:
+        _check_arguments(num_scenes, flaw_rate)
+        spec = get_room(room_type)
+        it = range(int(num_scenes))
+        if progress:
+            from tqdm import tqdm
+
+            it = tqdm(it, desc=f"procedural {spec.name}", unit="room")
+        return [generate_room(spec.name, i, seed, flaw_rate) for i in it]
+    return [lay for chunk in map_room_chunks(room_type, num_scenes, seed=seed, flaw_rate=flaw_rate,
+                                             processes=processes, progress=progress) for lay in chunk]
+
+
+def available_cores() -> int:
+    """The CPU cores this process may run on."""
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except (AttributeError, OSError):
+        return max(1, os.cpu_count() or 1)
+
+
+def map_room_chunks(room_type: str, num_scenes: int, fn: Callable[[list[Layout]], object] | None = None,
+                    seed: int = 0, flaw_rate: float = 1.0, processes: int | None = None, chunk_size: int = 0,
+                    progress: bool = False) -> Iterator:
+    """``fn(rooms)`` (default: the rooms themselves) for consecutive chunks of the rooms
+    :func:`generate_layouts` makes, in order, each chunk generated and handed to ``fn`` in one of
+    ``processes`` worker processes (None or 0: one per available core; 1: in this process). ``fn`` must be
+    picklable (a module-level function or a ``functools.partial`` of one) and so must what it returns.
+    Each room has its own random generator (:func:`generate_room`), so chunks give the serial rooms.
+    ``progress``: a tqdm bar counting rooms."""
+    _check_arguments(num_scenes, flaw_rate)
+    spec = get_room(room_type)
+    num_scenes = int(num_scenes)
+    processes = min(int(processes or available_cores()), max(1, num_scenes))
+    if chunk_size <= 0:  # a few chunks per process (a balanced load and a moving bar), at most 500 rooms each
+        chunk_size = max(1, min(500, -(-num_scenes // (4 * processes))))
+    starts = range(0, num_scenes, chunk_size)
+    tasks = [(spec.name, start, min(start + chunk_size, num_scenes), seed, float(flaw_rate), fn) for start in starts]
+    bar = None
+    if progress:
+        from tqdm import tqdm
+
+        bar = tqdm(total=num_scenes, desc=f"procedural {spec.name}", unit="room", dynamic_ncols=True)
+    try:
+        if processes == 1:
+            results = map(_chunk, tasks)
+            for task, result in zip(tasks, results):
+                if bar is not None:
+                    bar.update(task[2] - task[1])
+                yield result
+            return
+        import multiprocessing
+
+        methods = multiprocessing.get_all_start_methods()
+        # fork starts a worker in milliseconds (spawn re-imports torch: seconds); the workers use numpy only
+        context = multiprocessing.get_context("fork" if "fork" in methods else None)
+        with context.Pool(processes, initializer=_worker_init) as pool:
+            for task, result in zip(tasks, pool.imap(_chunk, tasks)):
+                if bar is not None:
+                    bar.update(task[2] - task[1])
+                yield result
+    finally:
+        if bar is not None:
+            bar.close()
+
+
+def _worker_init() -> None:
+    try:  # a worker computes on one thread: the processes share the cores
+        import torch
+
+        torch.set_num_threads(1)
+    except ImportError:  # pragma: no cover - torch is a dependency
+        pass
+
+
+def _chunk(task):
+    room_type, start, stop, seed, flaw_rate, fn = task
+    rooms = [generate_room(room_type, i, seed, flaw_rate) for i in range(start, stop)]
+    return rooms if fn is None else fn(rooms)
+
+
+def _check_arguments(num_scenes: int, flaw_rate: float) -> None:
     if num_scenes < 0:
         raise ValueError(f"num_scenes must be >= 0, got {num_scenes}")
     if not 0.0 <= float(flaw_rate) <= 1.0:
         raise ValueError(f"flaw_rate must be within [0, 1], got {flaw_rate}")
-    spec = get_room(room_type)
-    it = range(int(num_scenes))
-    if progress:
-        from tqdm import tqdm
-
-        it = tqdm(it, desc=f"procedural {spec.name}", unit="room")
-    return [generate_room(spec.name, i, seed, flaw_rate) for i in it]
 
 
-__all__ = ["FLAWS", "ROOM_SHAPES", "SIZES", "RoomShape", "Size", "floor_polygon", "generate_layouts",
-           "generate_room", "sample_floor"]
+__all__ = ["FLAWS", "GENERATOR_VERSION", "ROOM_SHAPES", "SIZES", "RoomShape", "Size", "available_cores",
+           "floor_polygon", "generate_layouts", "generate_room", "map_room_chunks", "sample_floor"]
