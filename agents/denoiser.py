@@ -6,7 +6,8 @@ Network, for x_t of shape (B, N, 8 + K) (N object slots; geometry 8 = translatio
 
 * slot embedding: geometry through a 2-layer MLP plus a linear map of the class part (a learnable class
   embedding weighted by the noisy one-hot), summed; no positional encoding, so the network is
-  permutation-equivariant over slots;
+  permutation-equivariant over slots; with ``slot_embedding`` a learned embedding of the slot's index is added
+  (slot identity, for rooms in a canonical slot order: ``PretrainConfig.canonical_order``);
 * floor encoder: a PointNet over the 256 boundary points with inward normals (x, z, nx, nz): per-point
   MLP 4 -> 64 -> 64 -> 512, max-pool over points, then 512 -> 64 (widths [4, 64, 64, 512, 64]); the 64-d
   global floor feature is mapped to ``floor_tokens`` context tokens;
@@ -36,7 +37,7 @@ Network, for x_t of shape (B, N, 8 + K) (N object slots; geometry 8 = translatio
 * ``num_layers`` blocks of self-attention over the slots, cross-attention to the floor tokens and a GELU
   feed-forward; attention uses explicit ``q_proj``, ``k_proj``, ``v_proj``, ``out_proj`` ``nn.Linear``
   layers (LoRA targets exactly these; ``nn.MultiheadAttention`` would bypass LoRA on its fast path);
-* output: epsilon of shape (B, N, 8 + K).
+* output: epsilon (or x0, or v: the schedule's ``prediction_type``) of shape (B, N, 8 + K).
 
 :meth:`SceneDenoiser.encode_floor` returns one tensor (B, rows, d): row 0 is the floor's adaLN vector (with
 ``floor_adaln``), then the cross-attention tokens, then (with ``floor_slot_features``) the subsampled raw
@@ -47,7 +48,8 @@ Unconditional predictions (classifier-free guidance, condition dropout in traini
 input, which no real floor produces (its normals are unit vectors).
 
 The dataclass defaults of the floor options (``floor_point_tokens=0``, ``floor_adaln=False``,
-``floor_slot_features=False``, ``room_frame=False``, ``pair_bias=False``) are the original design, so
+``floor_slot_features=False``, ``room_frame=False``, ``pair_bias=False``, ``slot_embedding=False``) are the
+original design, so
 checkpoints written before these fields existed load unchanged; the ``paper`` and ``small`` presets switch
 on the first four (``pair_bias`` did not measurably help: docs/results/prior_bedroom_small.md).
 """
@@ -75,6 +77,7 @@ GEOMETRY_DIM = 8
 CHECKPOINT_FORMAT = "iarcs-scene-prior"
 CHECKPOINT_VERSION = 1  # new DenoiserConfig fields default to the old architecture: still version 1
 CHECKPOINT_DIR = Path(__file__).resolve().parent / "checkpoints"
+MAX_SLOTS = 32  # rows of the slot-index embedding (DenoiserConfig.slot_embedding); the first N are used
 
 
 @dataclass
@@ -118,6 +121,11 @@ class DenoiserConfig:
     slot's offset in this slot's frame, the gaps between their footprints, their relative yaw) through an
     MLP (:meth:`SceneDenoiser.pair_features`): object-to-object placement (a nightstand beside a bed) needs
     the precision the room frame gave against walls. Needs ``room_frame`` (False: the original design)."""
+    slot_embedding: bool = False
+    """Add a learned embedding of each slot's index to its token (a table of ``MAX_SLOTS`` rows, the first N
+    used), as DiffuScene's instance embedding: slots get an identity and the network is no longer
+    permutation-equivariant; meant for rooms in a canonical slot order (``PretrainConfig.canonical_order``).
+    False: exchangeable slots (the original design)."""
 
     def __post_init__(self):
         self.pointnet = tuple(int(v) for v in self.pointnet)
@@ -342,6 +350,8 @@ class SceneDenoiser(nn.Module):
         k = feature_dim - GEOMETRY_DIM
         self.geometry_embed = nn.Sequential(nn.Linear(GEOMETRY_DIM, d), nn.GELU(), nn.Linear(d, d))
         self.class_embed = nn.Linear(k, d, bias=False)  # = learnable class embeddings weighted by the one-hot
+        if config.slot_embedding:
+            self.slot_embed = nn.Parameter(torch.randn(MAX_SLOTS, d) * 0.02)
         self.time_embed = nn.Sequential(nn.Linear(d, d), nn.SiLU(), nn.Linear(d, d))
         self.floor_encoder = PointNetEncoder(config.pointnet)
         g = config.pointnet[-1]
@@ -495,6 +505,10 @@ class SceneDenoiser(nn.Module):
                 floor = x.new_zeros(b, 1, 4)
             floor_context = self.encode_floor(floor)
         h = self.geometry_embed(x[..., :GEOMETRY_DIM]) + self.class_embed(x[..., GEOMETRY_DIM:])
+        if self.config.slot_embedding:
+            if x.shape[1] > MAX_SLOTS:
+                raise ValueError(f"slot_embedding has {MAX_SLOTS} slots; got {x.shape[1]}")
+            h = h + self.slot_embed[:x.shape[1]]
         temb = self.time_embed(timestep_embedding(t, self.config.width))
         if self.config.floor_adaln:
             temb = temb + floor_context[:, 0]
@@ -618,30 +632,43 @@ class ScenePrior:
     @torch.no_grad()
     def sample_features(self, floors: Sequence[FloorPlan], num_steps: int = 20, eta: float = 1.0,
                         generator: torch.Generator | None = None, guidance_scale: float = 1.0,
-                        return_trajectory: bool = False, eps_fn=None):
-        """DDIM rollout; returns x_0 (B, N, 8+K) (and the trajectory, see NoiseSchedule.sample)."""
+                        return_trajectory: bool = False, eps_fn=None, classes: torch.Tensor | None = None):
+        """DDIM rollout; returns x_0 (B, N, 8+K) (and the trajectory, see NoiseSchedule.sample). ``classes``
+        (B, N) class indices (``empty_index``: an empty slot), for a prior trained with
+        ``PretrainConfig.classes_given``: the network sees their clean one-hot as the class part of x_t at every
+        step, and x_0 has them (not with ``return_trajectory``)."""
         was_training = self.denoiser.training
         self.denoiser.eval()
         try:
             cond = self.floor_condition(floors)
             shape = (len(floors), self.num_slots, self.spec.feature_dim)
             x_T = standard_normal(shape, generator, self.device)
-            return self.schedule.sample(self.model_fn(cond, guidance_scale, eps_fn), shape, num_steps=num_steps, eta=eta,
-                                        generator=generator, x_T=x_T, return_trajectory=return_trajectory)
+            fn = self.model_fn(cond, guidance_scale, eps_fn)
+            if classes is None:
+                return self.schedule.sample(fn, shape, num_steps=num_steps, eta=eta, generator=generator, x_T=x_T,
+                                            return_trajectory=return_trajectory)
+            if return_trajectory:
+                raise ValueError("sampling with given classes returns no trajectory")
+            given = 2 * F.one_hot(classes.to(self.device), self.spec.num_classes).float() - 1
+            x0 = self.schedule.sample(lambda x, t: fn(torch.cat([x[..., :GEOMETRY_DIM], given], -1), t), shape,
+                                      num_steps=num_steps, eta=eta, generator=generator, x_T=x_T)
+            return torch.cat([x0[..., :GEOMETRY_DIM], given], -1)
         finally:
             self.denoiser.train(was_training)
 
     def sample(self, floors: Sequence[FloorPlan], num_steps: int = 20, eta: float = 1.0,
                generator: torch.Generator | None = None, guidance_scale: float = 1.0,
-               batch_size: int | None = None, ids: Sequence[str] | None = None, eps_fn=None) -> SceneBatch:
+               batch_size: int | None = None, ids: Sequence[str] | None = None, eps_fn=None,
+               classes: torch.Tensor | None = None) -> SceneBatch:
         """Scenes for the given floor plans (any frame; returned centred). ``batch_size`` splits big requests
         into chunks run one after another (the random stream is then consumed chunk by chunk). ``eps_fn``: see
-        :meth:`model_fn`."""
+        :meth:`model_fn`; ``classes``: see :meth:`sample_features`."""
         floors = [centre_floor(f) for f in floors]
         if not floors:
             raise ValueError("sample needs at least one floor plan")
         bs = batch_size or len(floors)
-        xs = [self.sample_features(floors[i:i + bs], num_steps, eta, generator, guidance_scale, eps_fn=eps_fn)
+        xs = [self.sample_features(floors[i:i + bs], num_steps, eta, generator, guidance_scale, eps_fn=eps_fn,
+                                   classes=None if classes is None else classes[i:i + bs])
               for i in range(0, len(floors), bs)]
         x0 = torch.cat(xs).cpu()
         return SceneBatch.decode(x0, self.stats, floors, list(ids) if ids else

@@ -27,16 +27,17 @@ import torch
 
 from iarcs_env.rooms import get_room
 from iarcs_env.scene import Layout, box_corners_xz, decode_geometry, footprint_reach, scale_floor_points
-from iarcs_env.schedule import NoiseSchedule
+from iarcs_env.schedule import PREDICTION_TYPES, NoiseSchedule
 from iarcs_env.stats import DatasetStats
 
 from . import distributed
 from .config import check_device, dataclass_from_dict, load_yaml_config
-from .denoiser import DenoiserConfig, SceneDenoiser, ScenePrior, atomic_torch_save
+from .denoiser import GEOMETRY_DIM, DenoiserConfig, SceneDenoiser, ScenePrior, atomic_torch_save
 from .pretrain_data import (SceneTensors, encode_batch, load_training_layouts, resolve_dataset, stats_for_training,
                             training_data, training_split)
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
+MIN_SNR_GAMMA = 5.0  # the gamma of loss_weighting: min_snr
 STATE_FILE = "train_state.pt"
 PRIOR_FILE = "prior.pt"
 
@@ -113,6 +114,22 @@ class PretrainConfig:
     """Rotate each training scene by a random multiple of 90 degrees (floor and objects together)."""
     permutation_augment: bool = True
     """Shuffle each training scene's object slots."""
+    canonical_order: bool = False
+    """Put each room's objects in a canonical slot order: sorted by class index, empty slots last
+    (:meth:`SceneTensors.from_layouts`), so that a slot's index tells what it holds, for a denoiser with
+    ``model: {slot_embedding: true}``. Needs ``permutation_augment: false``."""
+    prediction_type: str = "epsilon"
+    """What the denoiser predicts: ``epsilon`` (the noise: the original design), ``sample`` (x0) or
+    ``v_prediction`` (v); saved in the prior's schedule config, so that the prior samples as it was trained."""
+    loss_weighting: str = "none"
+    """Timestep weighting of the loss: ``none`` (the plain loss), or ``min_snr``: each scene's loss times
+    min(SNR_t, 5) / SNR_t for epsilon prediction (min-SNR-gamma with gamma 5; min(SNR_t, 5) for x0 and
+    min(SNR_t, 5) / (SNR_t + 1) for v), which gives the mid-noise steps more weight than the low-noise ones."""
+    classes_given: bool = False
+    """Condition the denoiser on each slot's class: the class part of x_t is the data's clean one-hot at every
+    t and the loss is on the geometry only; such a prior samples with given classes (``ScenePrior.sample(...,
+    classes=...)``). An experiment: can the network place objects relative to each other when it need not
+    choose their classes."""
     checkpoint_every: int = 500
     """Steps between checkpoints (train_state.pt and prior.pt)."""
     log_every: int = 50
@@ -149,6 +166,13 @@ class PretrainConfig:
             raise ValueError(f"lr_schedule must be cosine or constant, got {self.lr_schedule!r}")
         if self.precision not in ("fp32", "bf16"):
             raise ValueError(f"precision must be fp32 or bf16, got {self.precision!r}")
+        if self.prediction_type not in PREDICTION_TYPES:
+            raise ValueError(f"prediction_type must be one of {', '.join(PREDICTION_TYPES)}, got "
+                             f"{self.prediction_type!r}")
+        if self.loss_weighting not in ("none", "min_snr"):
+            raise ValueError(f"loss_weighting must be none or min_snr, got {self.loss_weighting!r}")
+        if self.canonical_order and self.permutation_augment:
+            raise ValueError("canonical_order needs permutation_augment: false (shuffled slots have no order)")
         DenoiserConfig.from_preset(self.preset, **dict(self.model))
         for name in ("num_scenes", "steps", "batch_size", "checkpoint_every", "log_every", "eval_every"):
             if getattr(self, name) <= 0:
@@ -224,15 +248,27 @@ def overlap_excess(spec, stats: DatasetStats, extents: torch.Tensor, weight: flo
     return lambda x0_hat, x0, t: weight * on_rows(t < max_timestep, per_scene, x0_hat, x0, extents)
 
 
-def loss_feature_weights(cfg: PretrainConfig, feature_dim: int) -> torch.Tensor | None:
+def loss_feature_weights(cfg: PretrainConfig, feature_dim: int, plain: bool = False) -> torch.Tensor | None:
     """Per-feature weights of the epsilon loss (``translation_weight`` on x and z, ``elevation_weight`` on y,
-    1 elsewhere), or None for the plain loss."""
-    if cfg.translation_weight == 1.0 and cfg.elevation_weight == 1.0:
-        return None
+    1 elsewhere; ``plain``: 1 on all, the validation loss); with ``classes_given`` 0 on the class part and
+    (8 + K) / 8 on the geometry, a mean over the geometry. None for the plain loss."""
     weights = torch.ones(feature_dim)
-    weights[[0, 2]] = cfg.translation_weight
-    weights[1] = cfg.elevation_weight
-    return weights
+    if not plain:
+        weights[[0, 2]] = cfg.translation_weight
+        weights[1] = cfg.elevation_weight
+    if cfg.classes_given:
+        weights[GEOMETRY_DIM:] = 0
+        weights *= feature_dim / GEOMETRY_DIM
+    return None if bool((weights == 1).all()) else weights
+
+
+def denoiser_fn(model: Callable, floor: torch.Tensor, x0: torch.Tensor, cfg: PretrainConfig) -> Callable:
+    """``f(x_t, t)``: ``model(x_t, t, floor)`` in float32; with ``classes_given`` the class part of x_t replaced
+    by the clean one of ``x0``."""
+    if not cfg.classes_given:
+        return lambda x, t: model(x, t, floor).float()
+    given = x0[..., GEOMETRY_DIM:]
+    return lambda x, t: model(torch.cat([x[..., :GEOMETRY_DIM], given], -1), t, floor).float()
 
 
 def out_of_bound_excess(spec, stats: DatasetStats, extents: torch.Tensor, points: torch.Tensor,
@@ -366,8 +402,9 @@ def draw_batch(data: SceneTensors, cfg: PretrainConfig, spec, stats: DatasetStat
 
 def batch_loss(model: Callable, schedule: NoiseSchedule, batch: TrainingBatch, cfg: PretrainConfig, spec,
                stats: DatasetStats, weights: torch.Tensor | None) -> torch.Tensor:
-    """Per-scene loss (B,): the DDPM epsilon loss (feature-weighted by ``weights``) plus the x0-hat losses the
-    config asks for. ``model(x_t, t, floor)`` predicts epsilon."""
+    """Per-scene loss (B,): the DDPM loss (feature-weighted by ``weights``, timestep-weighted as
+    ``loss_weighting`` says) plus the x0-hat losses the config asks for. ``model(x_t, t, floor)`` predicts
+    epsilon (or x0, or v: ``schedule.config.prediction_type``)."""
     penalties = []
     if cfg.overlap_weight:
         penalties.append(overlap_excess(spec, stats, batch.extents, cfg.overlap_weight, cfg.overlap_max_timestep))
@@ -375,8 +412,10 @@ def batch_loss(model: Callable, schedule: NoiseSchedule, batch: TrainingBatch, c
         penalties.append(out_of_bound_excess(spec, stats, batch.extents, batch.points, cfg.out_of_bound_weight,
                                              cfg.out_of_bound_max_timestep))
     penalty = (lambda x0_hat, x0, t: sum(p(x0_hat, x0, t) for p in penalties)) if penalties else None
-    return schedule.training_loss(lambda x, t: model(x, t, batch.floor).float(), batch.x0, t=batch.t,
-                                  noise=batch.noise, reduction="none", feature_weights=weights, x0_penalty=penalty)
+    scene_weights = schedule.min_snr_weights(batch.t, MIN_SNR_GAMMA) if cfg.loss_weighting == "min_snr" else None
+    return schedule.training_loss(denoiser_fn(model, batch.floor, batch.x0, cfg), batch.x0, t=batch.t,
+                                  noise=batch.noise, reduction="none", feature_weights=weights, x0_penalty=penalty,
+                                  scene_weights=scene_weights)
 
 
 def training_step(model: Callable, net: SceneDenoiser, ema: SceneDenoiser, opt: torch.optim.Optimizer,
@@ -429,10 +468,12 @@ def compiled(net: SceneDenoiser, example: Callable[[], TrainingBatch], schedule:
 
 
 def _check_resumable(saved: dict, cfg: PretrainConfig, path: Path) -> None:
-    for key in ("room", "preset", "model", "dataset", "num_scenes", "data_seed"):
-        if saved.get(key) != asdict(cfg)[key]:
+    for key in ("room", "preset", "model", "dataset", "num_scenes", "data_seed", "prediction_type", "classes_given",
+                "canonical_order"):
+        was = saved.get(key, PretrainConfig.__dataclass_fields__[key].default)  # a run from before the field
+        if was != asdict(cfg)[key]:
             raise ValueError(
-                f"{path} was trained with {key}={saved.get(key)!r} but the config says {asdict(cfg)[key]!r}; "
+                f"{path} was trained with {key}={was!r} but the config says {asdict(cfg)[key]!r}; "
                 "use another output folder (--out) to start a new run, or restore the setting to resume")
 
 
@@ -489,14 +530,14 @@ def train(cfg: PretrainConfig, layouts: Sequence[Layout] | None = None, max_step
     torch.manual_seed(cfg.seed)
     net = SceneDenoiser(cfg.denoiser_config(), spec.feature_dim)
     net.set_metric_scale(stats)
-    weights = loss_feature_weights(cfg, spec.feature_dim)  # validation losses stay the plain loss
+    weights = loss_feature_weights(cfg, spec.feature_dim)
+    val_weights = loss_feature_weights(cfg, spec.feature_dim, plain=True)  # validation losses stay the plain loss
     if init is not None:
         net.load_state_dict(init_state["model"] if init_state else init.denoiser.state_dict())
         log(f"initialised from {cfg.init_from}" + (" (weights, EMA and optimizer state)" if init_state else ""))
     net.to(device)
     distributed.broadcast_parameters(net.parameters())  # one initialisation on every rank
-    if weights is not None:
-        weights = weights.to(device)
+    weights, val_weights = (w.to(device) if w is not None else None for w in (weights, val_weights))
     ema = copy.deepcopy(net).eval().requires_grad_(False)
     opt = torch.optim.AdamW(net.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay, fused=True)
     if init_state:
@@ -504,7 +545,7 @@ def train(cfg: PretrainConfig, layouts: Sequence[Layout] | None = None, max_step
         opt.load_state_dict(init_state["optimizer"])
     data, val = data.to(device), val.to(device) if val is not None else None  # resident on the training device
     gen = torch.Generator(device).manual_seed(distributed.rank_seed(cfg.seed + 1))  # each rank its own batches
-    schedule = NoiseSchedule()
+    schedule = NoiseSchedule(prediction_type=cfg.prediction_type)
     step = 0
     if saved is not None:
         net.load_state_dict(saved["model"])
@@ -542,8 +583,7 @@ def train(cfg: PretrainConfig, layouts: Sequence[Layout] | None = None, max_step
         if device.type == "cuda":
             state["rng"]["cuda"] = torch.cuda.get_rng_state_all()
         atomic_torch_save(state, state_path)
-        prior = ScenePrior(copy.deepcopy(ema), stats, NoiseSchedule(),
-                           meta={"step": step, "preset": cfg.preset, "dataset": cfg.dataset, "room": spec.name})
+        prior = ScenePrior(copy.deepcopy(ema), stats, NoiseSchedule(schedule.config), meta=prior_meta(cfg, step))
         result.prior_path = prior.save(out / PRIOR_FILE)
 
     def ema_loss(rooms: SceneTensors) -> float:
@@ -554,7 +594,8 @@ def train(cfg: PretrainConfig, layouts: Sequence[Layout] | None = None, max_step
             for i in range(0, len(rooms), 256):
                 idx = torch.arange(i, min(i + 256, len(rooms)), device=device)
                 x0, floor = encode_batch(spec, stats, *rooms.batch(idx))
-                losses.append(schedule.training_loss(lambda x, t: ema(x, t, floor), x0, g, reduction="none"))
+                losses.append(schedule.training_loss(denoiser_fn(ema, floor, x0, cfg), x0, g, reduction="none",
+                                                     feature_weights=val_weights))
         return float(torch.cat(losses).mean())
 
     # as many training rooms as held-out ones: the gap between their losses measures overfitting
@@ -635,8 +676,14 @@ def prior_from_state(state: dict, where: str = "train_state.pt") -> ScenePrior:
     spec = get_room(cfg.room)
     net = SceneDenoiser(cfg.denoiser_config(), spec.feature_dim)
     net.load_state_dict(state["ema"])
-    return ScenePrior(net, DatasetStats.from_json(state["stats"], spec.name), NoiseSchedule(),
-                      meta={"step": int(state["step"]), "preset": cfg.preset, "dataset": cfg.dataset, "room": spec.name})
+    return ScenePrior(net, DatasetStats.from_json(state["stats"], spec.name),
+                      NoiseSchedule(prediction_type=cfg.prediction_type), meta=prior_meta(cfg, int(state["step"])))
+
+
+def prior_meta(cfg: PretrainConfig, step: int) -> dict:
+    """The ``meta`` of a prior exported from a run; ``classes_given`` where the prior needs classes to sample."""
+    meta = {"step": step, "preset": cfg.preset, "dataset": cfg.dataset, "room": get_room(cfg.room).name}
+    return {**meta, "classes_given": True} if cfg.classes_given else meta
 
 
 def export_prior(state_path: str | Path, dest: str | Path, half: bool = False) -> Path:

@@ -1,6 +1,6 @@
-"""The pretraining data pipeline: a dataset's rooms as metric tensors (:class:`SceneTensors`), their
-training / validation split and feature statistics, and the augmentation (90-degree rotations, slot
-permutations) done on the tensors."""
+"""The pretraining data pipeline: a dataset's rooms as metric tensors (:class:`SceneTensors`), optionally in a
+canonical slot order, their training / validation split and feature statistics, and the augmentation (90-degree
+rotations, slot permutations) done on the tensors."""
 
 from __future__ import annotations
 
@@ -54,10 +54,17 @@ class SceneTensors:
     extents: torch.Tensor  # (S, 2): the floors' half-extents (x, z) in metres
 
     @classmethod
-    def from_layouts(cls, layouts: Sequence[Layout], num_slots: int, num_points: int = 256) -> "SceneTensors":
+    def from_layouts(cls, layouts: Sequence[Layout], num_slots: int, num_points: int = 256,
+                     canonical_order: bool = False) -> "SceneTensors":
+        """The rooms' tensors, their objects in the rooms' order or, with ``canonical_order``, sorted by class
+        index (a stable sort: objects of one class keep the room's order), empty slots (the largest index)
+        last: the one place where the canonical order of ``PretrainConfig.canonical_order`` is made."""
         b = SceneBatch.from_layouts(layouts, num_slots=num_slots)
+        slots = (b.labels, b.translations, b.half_sizes, b.yaws)
+        if canonical_order:
+            slots = gather_slots(b.labels.argsort(dim=1, stable=True), *slots)
         pts = torch.tensor(np.stack([f.boundary_points(num_points) for f in b.floors]), dtype=torch.float32)
-        return cls(b.labels, b.translations, b.half_sizes, b.yaws, pts, floor_half_extents(b.floors))
+        return cls(*slots, pts, floor_half_extents(b.floors))
 
     def __len__(self) -> int:
         return self.labels.shape[0]
@@ -86,11 +93,14 @@ class SceneTensors:
             extents = torch.where((k % 2 == 1)[:, None], extents.flip(-1), extents)  # 90 degrees swap x, z
         if permute:
             perm = torch.rand(b, n, generator=generator, device=labels.device).argsort(1)
-            labels = labels.gather(1, perm)
-            trans = trans.gather(1, perm[..., None].expand(-1, -1, 3))
-            half = half.gather(1, perm[..., None].expand(-1, -1, 3))
-            yaws = yaws.gather(1, perm)
+            labels, trans, half, yaws = gather_slots(perm, labels, trans, half, yaws)
         return labels, trans, half, yaws, pts, extents
+
+
+def gather_slots(order: torch.Tensor, labels, trans, half, yaws):
+    """The slots of each scene reordered: slot i of scene b gets what its slot ``order[b, i]`` held."""
+    return (labels.gather(1, order), trans.gather(1, order[..., None].expand(-1, -1, 3)),
+            half.gather(1, order[..., None].expand(-1, -1, 3)), yaws.gather(1, order))
 
 
 def rotate_xz_tensor(p: torch.Tensor, c: torch.Tensor, s: torch.Tensor) -> torch.Tensor:

@@ -16,9 +16,14 @@ code                   paper
 ``sigma_t``            DDIM std: eta * sqrt((1-a_prev)/(1-a_t) * (1 - a_t/a_prev))
 ``pred_x0``            x0_hat = (x_t - sqrt(1-a_t) * eps) / sqrt(a_t)
 ``mean``               mu_t = sqrt(a_prev) * x0_hat + sqrt(1 - a_prev - sigma_t^2) * eps
+``v``                  v = sqrt(a_t) * eps - sqrt(1-a_t) * x0 (Salimans & Ho 2022)
+``snr(t)``             SNR_t = a_t / (1 - a_t)
 =====================  =======================================================================
 
-The model predicts epsilon. One DDIM step is the policy of the denoising MDP:
+The model predicts epsilon (``prediction_type`` ``epsilon``, the default), x0 (``sample``) or v
+(``v_prediction``): the training loss regresses that target, and :meth:`NoiseSchedule.predict_x0` and
+:meth:`NoiseSchedule.predict_eps` convert the model's output, so DDIM steps work with any of them. One DDIM
+step is the policy of the denoising MDP:
 ``pi(x_{t-1} | x_t) = N(mu_t, sigma_t^2 I)``; its log-probability is the MEAN of the per-element
 Gaussian log-densities over a scene (as in DDPO), so that a PPO clip range of 1e-4 on the ratio is
 meaningful. ``sigma_t`` is floored at ``min_std`` (1e-6) for the log-probability so that the last step
@@ -36,6 +41,8 @@ import torch
 #: Floor of sigma_t in log-probabilities (and in sampling when eta > 0).
 MIN_STD = 1e-6
 _LOG_SQRT_2PI = 0.5 * math.log(2 * math.pi)
+#: The model outputs :attr:`ScheduleConfig.prediction_type` knows (diffusers' names).
+PREDICTION_TYPES = ("epsilon", "sample", "v_prediction")
 
 
 @dataclass
@@ -51,7 +58,8 @@ class ScheduleConfig:
     beta_schedule: str = "linear"
     """Only ``linear`` (the paper's)."""
     prediction_type: str = "epsilon"
-    """Only ``epsilon``: the denoiser predicts the added noise."""
+    """What the denoiser outputs: ``epsilon`` (the added noise), ``sample`` (the clean x0) or ``v_prediction``
+    (v = sqrt(a_t) eps - sqrt(1 - a_t) x0). Saved with a prior, so that it samples as it was trained."""
     clip_sample: bool = True
     """Clip x0_hat to [-clip_sample_range, clip_sample_range] in DDIM steps (features live in [-1, 1])."""
     clip_sample_range: float = 1.0
@@ -97,7 +105,7 @@ def standard_normal(shape, generator: torch.Generator | None = None, device=None
 
 
 class NoiseSchedule:
-    """Linear-beta DDPM schedule with epsilon prediction and DDIM sampling steps.
+    """Linear-beta DDPM schedule with epsilon (x0 or v) prediction and DDIM sampling steps.
 
     Usage (sampling)::
 
@@ -115,8 +123,9 @@ class NoiseSchedule:
             cfg = ScheduleConfig(**{**asdict(cfg), **overrides})
         if cfg.beta_schedule != "linear":
             raise ValueError(f"unsupported beta_schedule {cfg.beta_schedule!r}; only 'linear' is implemented")
-        if cfg.prediction_type != "epsilon":
-            raise ValueError(f"unsupported prediction_type {cfg.prediction_type!r}; only 'epsilon'")
+        if cfg.prediction_type not in PREDICTION_TYPES:
+            raise ValueError(f"unsupported prediction_type {cfg.prediction_type!r}; choose one of: "
+                             f"{', '.join(PREDICTION_TYPES)}")
         self.config = cfg
         T = cfg.num_train_timesteps
         # computed in float64, stored in float32 (the model's dtype)
@@ -164,18 +173,46 @@ class NoiseSchedule:
         t = torch.randint(0, self.num_train_timesteps, (batch_size,), generator=generator, device=where)
         return t if device is None else t.to(device)
 
+    def snr(self, t: torch.Tensor) -> torch.Tensor:
+        """SNR_t = alpha-bar_t / (1 - alpha-bar_t) of (B,) timesteps."""
+        a = self._abar(t, t.float())
+        return a / (1 - a)
+
+    def min_snr_weights(self, t: torch.Tensor, gamma: float = 5.0) -> torch.Tensor:
+        """Min-SNR-gamma weights (B,) (Hang et al. 2023) of the loss in this schedule's prediction type:
+        min(SNR_t, gamma) / SNR_t for epsilon, min(SNR_t, gamma) for x0, min(SNR_t, gamma) / (SNR_t + 1) for v:
+        all three are min(SNR_t, gamma) times the x0 error. They lower the weight of the low-noise steps, which
+        the plain epsilon loss stresses, relative to the mid-noise ones."""
+        snr = self.snr(t)
+        clipped = snr.clamp(max=gamma)
+        kind = self.config.prediction_type
+        return clipped / snr if kind == "epsilon" else clipped if kind == "sample" else clipped / (snr + 1)
+
+    def training_target(self, x0: torch.Tensor, noise: torch.Tensor, t: torch.Tensor | int) -> torch.Tensor:
+        """What the model learns to output for x_t = :meth:`q_sample` (x0, t, noise): eps, x0 or v."""
+        kind = self.config.prediction_type
+        if kind == "epsilon":
+            return noise
+        if kind == "sample":
+            return x0
+        a = self._abar(t, x0)
+        return a.sqrt() * noise - (1 - a).sqrt() * x0
+
     def training_loss(self, model_fn: Callable[[torch.Tensor, torch.Tensor], torch.Tensor], x0: torch.Tensor,
                       generator: torch.Generator | None = None, t: torch.Tensor | None = None,
                       noise: torch.Tensor | None = None, reduction: str = "mean",
                       feature_weights: torch.Tensor | None = None,
-                      x0_penalty: Callable[[torch.Tensor, torch.Tensor, torch.Tensor], torch.Tensor] | None = None
-                      ) -> torch.Tensor:
-        """The DDPM "simple" loss E_{t, eps} || eps - eps_theta(x_t, t) ||^2 (mean over elements).
+                      x0_penalty: Callable[[torch.Tensor, torch.Tensor, torch.Tensor], torch.Tensor] | None = None,
+                      scene_weights: torch.Tensor | None = None) -> torch.Tensor:
+        """The DDPM "simple" loss E_{t, eps} || target - f_theta(x_t, t) ||^2 (mean over elements), the target
+        eps (the plain DDPM loss), x0 or v as ``prediction_type`` says (:meth:`training_target`).
 
-        ``model_fn(x_t, t)`` returns the predicted noise. ``reduction="none"`` gives one loss per scene.
+        ``model_fn(x_t, t)`` returns the model's prediction. ``reduction="none"`` gives one loss per scene.
         ``feature_weights`` (one per feature, broadcast over the last dimension) reweights the squared error
-        of each feature; None is the plain loss. ``x0_penalty(x0_hat, x0, t)`` (one value per scene) is an
-        auxiliary loss on the clean scene the model predicts (:meth:`predict_x0`), added to the scene's loss.
+        of each feature; None is the plain loss. ``scene_weights`` (B,) weigh each scene's loss (a timestep
+        weighting such as :meth:`min_snr_weights`). ``x0_penalty(x0_hat, x0, t)`` (one value per scene) is an
+        auxiliary loss on the clean scene the model predicts (:meth:`predict_x0`), added to the scene's loss
+        (not weighted by ``scene_weights``).
         """
         b = x0.shape[0]
         if t is None:
@@ -183,13 +220,15 @@ class NoiseSchedule:
         if noise is None:
             noise = standard_normal(x0.shape, generator, x0.device, x0.dtype)
         x_t = self.q_sample(x0, t, noise)
-        eps = model_fn(x_t, t)
-        err = (eps - noise) ** 2
+        out = model_fn(x_t, t)
+        err = (out - self.training_target(x0, noise, t)) ** 2
         if feature_weights is not None:
             err = err * feature_weights
         per_scene = err.flatten(1).mean(1)
+        if scene_weights is not None:
+            per_scene = per_scene * scene_weights
         if x0_penalty is not None:
-            per_scene = per_scene + x0_penalty(self.predict_x0(x_t, t, eps), x0, t)
+            per_scene = per_scene + x0_penalty(self.predict_x0(x_t, t, out), x0, t)
         return per_scene.mean() if reduction == "mean" else per_scene
 
     # --- DDIM ---------------------------------------------------------------------------------------
@@ -216,10 +255,27 @@ class NoiseSchedule:
         var = (1 - a_prev) / (1 - a_t) * (1 - a_t / a_prev)
         return eta * var.clamp(min=0).sqrt()
 
-    def predict_x0(self, x_t: torch.Tensor, timestep: torch.Tensor | int, eps: torch.Tensor) -> torch.Tensor:
-        """x0_hat = (x_t - sqrt(1 - alpha-bar_t) eps) / sqrt(alpha-bar_t): the clean scene the model predicts."""
+    def predict_x0(self, x_t: torch.Tensor, timestep: torch.Tensor | int, model_output: torch.Tensor) -> torch.Tensor:
+        """The clean scene the model predicts: for epsilon x0_hat = (x_t - sqrt(1 - alpha-bar_t) eps) /
+        sqrt(alpha-bar_t); for x0 the output itself; for v sqrt(alpha-bar_t) x_t - sqrt(1 - alpha-bar_t) v."""
+        kind = self.config.prediction_type
+        if kind == "sample":
+            return model_output
         a_t = self._abar(timestep, x_t)
-        return (x_t - (1 - a_t).sqrt() * eps) / a_t.sqrt()
+        if kind == "epsilon":
+            return (x_t - (1 - a_t).sqrt() * model_output) / a_t.sqrt()
+        return a_t.sqrt() * x_t - (1 - a_t).sqrt() * model_output
+
+    def predict_eps(self, x_t: torch.Tensor, timestep: torch.Tensor | int, model_output: torch.Tensor) -> torch.Tensor:
+        """The noise the model predicts: for epsilon the output itself; for x0 (x_t - sqrt(alpha-bar_t) x0_hat) /
+        sqrt(1 - alpha-bar_t); for v sqrt(1 - alpha-bar_t) x_t + sqrt(alpha-bar_t) v."""
+        kind = self.config.prediction_type
+        if kind == "epsilon":
+            return model_output
+        a_t = self._abar(timestep, x_t)
+        if kind == "sample":
+            return (x_t - a_t.sqrt() * model_output) / (1 - a_t).sqrt()
+        return (1 - a_t).sqrt() * x_t + a_t.sqrt() * model_output
 
     def step(self, model_output: torch.Tensor, timestep: torch.Tensor | int, sample: torch.Tensor,
              eta: float = 1.0, generator: torch.Generator | None = None, prev_sample: torch.Tensor | None = None,
@@ -227,17 +283,18 @@ class NoiseSchedule:
              min_std: float = MIN_STD, noise: torch.Tensor | None = None) -> DDIMStepOutput:
         """One DDIM step x_t -> x_{t_prev}, with the Gaussian it samples from and a log-probability.
 
-        ``model_output`` is eps_theta(x_t, t); ``timestep`` a scalar or (B,) tensor; ``prev_sample``, if
-        given, is the next state whose log-probability is wanted (nothing is sampled then). With eta = 0
-        the step is deterministic (``prev_sample = mean``); ``std`` is still floored at ``min_std`` so the
-        log-probability is finite.
+        ``model_output`` is the model's prediction (eps_theta(x_t, t) for epsilon prediction); ``timestep`` a
+        scalar or (B,) tensor; ``prev_sample``, if given, is the next state whose log-probability is wanted
+        (nothing is sampled then). With eta = 0 the step is deterministic (``prev_sample = mean``); ``std`` is
+        still floored at ``min_std`` so the log-probability is finite.
         """
         if prev_timestep is None:
             prev_timestep = self.previous_timestep(timestep)
         clip = self.config.clip_sample if clip_sample is None else clip_sample
-        x_t, eps = sample, model_output
+        x_t = sample
+        eps = self.predict_eps(x_t, timestep, model_output)
         a_prev = self._abar(prev_timestep, x_t)  # alpha-bar_{t_prev}, 1 when t_prev < 0
-        pred_x0 = self.predict_x0(x_t, timestep, eps)
+        pred_x0 = self.predict_x0(x_t, timestep, model_output)
         if clip:
             r = self.config.clip_sample_range
             pred_x0 = pred_x0.clamp(-r, r)
@@ -265,8 +322,8 @@ class NoiseSchedule:
                num_steps: int = 20, eta: float = 1.0, generator: torch.Generator | None = None,
                x_T: torch.Tensor | None = None, device=None, dtype=torch.float32,
                return_trajectory: bool = False):
-        """DDIM rollout from x_T ~ N(0, I). ``model_fn(x_t, t)`` returns eps (apply guidance inside it,
-        see :func:`classifier_free_guidance`). Returns x_0, or ``(x_0, trajectory)`` where the trajectory
+        """DDIM rollout from x_T ~ N(0, I). ``model_fn(x_t, t)`` returns the model's prediction (apply guidance
+        inside it, see :func:`classifier_free_guidance`). Returns x_0, or ``(x_0, trajectory)`` where the trajectory
         is a dict of stacked ``states`` (S+1, B, ...), ``timesteps`` (S,), ``log_probs`` (S, B)."""
         self.set_timesteps(num_steps)
         x = x_T if x_T is not None else standard_normal(shape, generator, device, dtype)
@@ -310,5 +367,5 @@ def guided_model_fn(model: Callable[..., torch.Tensor], cond: torch.Tensor, guid
     return fn
 
 
-__all__ = ["DDIMStepOutput", "MIN_STD", "NoiseSchedule", "ScheduleConfig", "classifier_free_guidance",
-           "gaussian_log_prob", "guided_model_fn", "standard_normal"]
+__all__ = ["DDIMStepOutput", "MIN_STD", "NoiseSchedule", "PREDICTION_TYPES", "ScheduleConfig",
+           "classifier_free_guidance", "gaussian_log_prob", "guided_model_fn", "standard_normal"]
