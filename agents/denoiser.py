@@ -240,7 +240,8 @@ class PointMaxPool(torch.autograd.Function):
     feature, so the (B, P, F) gradient and its two large matrix products are never formed. The values and
     gradients are those of the plain layers (``tests/test_denoiser.py``)."""
 
-    CHUNK_ELEMENTS = 1 << 19  # activations per chunk: 2 MB in float32, about one core's L2 cache
+    CHUNK_ELEMENTS = 1 << 19  # activations per chunk on a CPU: 2 MB in float32, about one core's L2 cache
+    GPU_CHUNK_ELEMENTS = 1 << 28  # on a GPU: large chunks (0.5 GB in bfloat16), few kernel launches
 
     @staticmethod
     def forward(ctx, h, weight, bias, subset):
@@ -280,7 +281,8 @@ class PointMaxPool(torch.autograd.Function):
 
     @staticmethod
     def rows_per_chunk(h: torch.Tensor, weight: torch.Tensor) -> int:
-        return max(1, PointMaxPool.CHUNK_ELEMENTS // (h.shape[1] * weight.shape[0]))
+        size = PointMaxPool.CHUNK_ELEMENTS if h.device.type == "cpu" else PointMaxPool.GPU_CHUNK_ELEMENTS
+        return max(1, size // (h.shape[1] * weight.shape[0]))
 
 
 class PointNetEncoder(nn.Module):
