@@ -247,16 +247,16 @@ class PointMaxPool(torch.autograd.Function):
     def forward(ctx, h, weight, bias, subset):
         b, p, _ = h.shape
         w = weight.to(h.dtype)
-        rows = PointMaxPool.rows_per_chunk(h, weight)
-        pooled, arg, sub = [], [], []
+        rows, f = PointMaxPool.rows_per_chunk(h, weight), weight.shape[0]
+        pooled, sub = h.new_empty(b, f), h.new_empty(b, len(subset), f)
+        arg = torch.empty(b, f, dtype=torch.long, device=h.device)
         for i in range(0, b, rows):
             z = h[i:i + rows] @ w.T  # the bias is the same at every point: added after the max
-            m, a = z.max(dim=1)
-            pooled.append(m)
-            arg.append(a)
-            sub.append(z[:, subset])
+            torch.max(z, dim=1, out=(pooled[i:i + rows], arg[i:i + rows]))
+            torch.index_select(z, 1, subset, out=sub[i:i + rows])
         c = bias.to(h.dtype)
-        pooled, arg, sub = (torch.cat(pooled) + c).relu_(), torch.cat(arg), (torch.cat(sub) + c).relu_()
+        pooled.add_(c).relu_()
+        sub.add_(c).relu_()
         ctx.save_for_backward(h, weight, subset, pooled, arg, sub)
         return pooled, sub
 
