@@ -211,15 +211,10 @@ def training_data(cfg: "PretrainConfig", layouts: Sequence[Layout] | None = None
         layouts = load_training_layouts(cfg, log)
     train_layouts, val_layouts = training_split(layouts, cfg)
     stats = stats_for_training(train_layouts, spec.name, cfg.rotation_augment) if with_stats else None
-    data = SceneTensors.from_layouts(train_layouts, spec.max_objects, FLOOR_POINTS, **_order_option(cfg))
-    val = SceneTensors.from_layouts(val_layouts, spec.max_objects, FLOOR_POINTS, **_order_option(cfg)) \
+    data = SceneTensors.from_layouts(train_layouts, spec.max_objects, FLOOR_POINTS, cfg.canonical_order)
+    val = SceneTensors.from_layouts(val_layouts, spec.max_objects, FLOOR_POINTS, cfg.canonical_order) \
         if val_layouts else None
     return data, val, stats
-
-
-def _order_option(cfg: "PretrainConfig") -> dict:
-    """``canonical_order`` for :meth:`SceneTensors.from_layouts` where the config asks for it."""
-    return {"canonical_order": True} if getattr(cfg, "canonical_order", False) else {}
 
 
 def cache_key(cfg: "PretrainConfig") -> dict:
@@ -229,7 +224,7 @@ def cache_key(cfg: "PretrainConfig") -> dict:
     spec = get_room(cfg.room)
     return {"room": spec.name, "num_scenes": int(cfg.num_scenes), "data_seed": int(cfg.data_seed),
             "val_scenes": int(cfg.val_scenes), "rotation_augment": bool(cfg.rotation_augment),
-            "canonical_order": bool(getattr(cfg, "canonical_order", False)), "num_slots": spec.max_objects,
+            "canonical_order": cfg.canonical_order, "num_slots": spec.max_objects,
             "num_points": FLOOR_POINTS, "generator_version": GENERATOR_VERSION, "cache_version": CACHE_VERSION}
 
 
@@ -282,7 +277,7 @@ def _build(cfg: "PretrainConfig", log: Callable[[str], None], progress: bool):
     processes = max(1, min(available_cores(), n // ROOMS_PER_PROCESS))
     log(f"generating {n:,} procedural {spec.name}s in {processes} process{'es' if processes > 1 else ''}")
     t0 = time.perf_counter()
-    work = partial(_chunk_data, num_slots=spec.max_objects, options=_order_option(cfg),
+    work = partial(_chunk_data, num_slots=spec.max_objects, canonical_order=cfg.canonical_order,
                    rotation=cfg.rotation_augment)
     layouts, arrays, rotated, dropped = [], [], [], 0
     for rooms, tensors, rot, lost in map_room_chunks(spec.name, n, work, seed=cfg.data_seed, processes=processes,
@@ -307,13 +302,13 @@ def _build(cfg: "PretrainConfig", log: Callable[[str], None], progress: bool):
     return data, val, stats
 
 
-def _chunk_data(rooms: list[Layout], num_slots: int, options: dict, rotation: bool):
+def _chunk_data(rooms: list[Layout], num_slots: int, canonical_order: bool, rotation: bool):
     """In a worker process: a chunk of rooms' tensors (as NumPy arrays) and rotated bounds, without the rooms
     with more objects than ``num_slots``; (rooms, arrays, bounds, number dropped)."""
     kept = [l for l in rooms if len(l) <= num_slots]
     if not kept:
         return [], None, None, len(rooms)
-    t = SceneTensors.from_layouts(kept, num_slots, FLOOR_POINTS, **options)
+    t = SceneTensors.from_layouts(kept, num_slots, FLOOR_POINTS, canonical_order)
     arrays = {f.name: getattr(t, f.name).numpy() for f in fields(t)}
     return kept, arrays, rotated_translation_bounds(kept) if rotation else None, len(rooms) - len(kept)
 
