@@ -48,7 +48,8 @@ def installation_facts() -> dict:
     adapters = sorted(str(p.parent.relative_to(library)) for p in library.glob("*/*/adapter")) if library.exists() else []
     return {
         "iarcs": version("iarcs"), "python": sys.version.split()[0], "platform": platform.platform(),
-        "packages": {name: version(name) for name in PACKAGES},
+        "packages": {name: torch.__version__ if name == "torch" else version(name) for name in PACKAGES},  # with
+        # its build tag (+cpu, +cu130): the installed torch, also where it is not pip's (a GPU machine's image)
         "device": {"auto": str(resolve_device("auto")), "cuda_build": torch.version.cuda, "gpus": gpus,
                    "cpu_threads": torch.get_num_threads(),
                    "distributed_backends": [b for b in ("gloo", "nccl") if dist.is_available()
