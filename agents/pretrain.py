@@ -26,15 +26,14 @@ from typing import Callable, Sequence
 import torch
 
 from iarcs_env.rooms import get_room
-from iarcs_env.scene import Layout, box_corners_xz, decode_geometry, footprint_reach, scale_floor_points
+from iarcs_env.scene import Layout, box_corners_xz, decode_geometry, footprint_reach
 from iarcs_env.schedule import PREDICTION_TYPES, NoiseSchedule
 from iarcs_env.stats import DatasetStats
 
 from . import distributed
 from .config import check_device, dataclass_from_dict, load_yaml_config
 from .denoiser import GEOMETRY_DIM, DenoiserConfig, SceneDenoiser, ScenePrior, atomic_torch_save
-from .pretrain_data import (SceneTensors, encode_batch, load_training_layouts, resolve_dataset, stats_for_training,
-                            training_data, training_split)
+from .pretrain_data import SceneTensors, encode_batch, training_data
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 MIN_SNR_GAMMA = 5.0  # the gamma of loss_weighting: min_snr
@@ -699,6 +698,5 @@ def _write_yaml(path: Path, data: dict) -> None:
     path.write_text(yaml.safe_dump(data, sort_keys=False))
 
 
-__all__ = ["PretrainConfig", "SceneTensors", "TrainResult", "config_from_dict", "encode_batch", "export_prior",
-           "load_config", "load_training_layouts", "lr_at", "draw_batch", "batch_loss", "training_step", "resolve_dataset", "scale_floor_points",
-           "stats_for_training", "train"]
+__all__ = ["PretrainConfig", "TrainResult", "TrainingBatch", "batch_loss", "config_from_dict", "draw_batch", "export_prior",
+           "load_config", "lr_at", "prior_from_state", "train", "training_step"]

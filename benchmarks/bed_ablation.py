@@ -15,7 +15,7 @@ import numpy as np
 import torch
 
 from agents.denoiser import ScenePrior
-from agents.pretrain import SceneTensors, encode_batch
+from agents.pretrain_data import SceneTensors, encode_batch
 from iarcs_env import relations as rel
 from iarcs_env.datasets.procedural import generate_layouts
 from iarcs_env.scene import SceneBatch

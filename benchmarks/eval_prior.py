@@ -82,7 +82,7 @@ def floor_usage(prior: ScenePrior, reference: list, gen: list | None = None) -> 
     """Epsilon loss with own / next room's / zero floors, and R_out of ``gen`` on own / next floors."""
     import copy
 
-    from agents.pretrain import SceneTensors, encode_batch
+    from agents.pretrain_data import SceneTensors, encode_batch
 
     net = prior.denoiser.eval()
     data = SceneTensors.from_layouts(reference, prior.num_slots)
@@ -116,7 +116,7 @@ def denoise_from(prior: ScenePrior, reference: list, starts, seed: int = 0, num_
                  tasks: bool = False) -> dict:
     """Metrics of the reference rooms noised to each t in ``starts`` and denoised by the prior (DDIM, eta 1),
     with the position errors of the noised and of the denoised objects (and the tasks' success rates)."""
-    from agents.pretrain import SceneTensors, encode_batch
+    from agents.pretrain_data import SceneTensors, encode_batch
 
     data = SceneTensors.from_layouts(reference, prior.num_slots)
     x0, floor = encode_batch(prior.spec, prior.stats, *data.batch(torch.arange(len(data))))

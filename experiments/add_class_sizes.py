@@ -20,7 +20,8 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from agents.pretrain import load_config, load_training_layouts, training_split  # noqa: E402
+from agents.pretrain import load_config  # noqa: E402
+from agents.pretrain_data import load_training_layouts, training_split  # noqa: E402
 from iarcs_env.stats import DatasetStats  # noqa: E402
 
 

@@ -12,9 +12,9 @@ import pytest
 import torch
 
 from agents.denoiser import ScenePrior
-from agents.pretrain import (PRIOR_FILE, STATE_FILE, PretrainConfig, SceneTensors, config_from_dict,
-                             encode_batch, load_config, loss_feature_weights, lr_at, out_of_bound_excess, overlap_excess, resolve_dataset,
-                             stats_for_training, train)
+from agents.pretrain import (PRIOR_FILE, STATE_FILE, PretrainConfig, config_from_dict, load_config,
+                             loss_feature_weights, lr_at, out_of_bound_excess, overlap_excess, train)
+from agents.pretrain_data import SceneTensors, encode_batch, resolve_dataset, stats_for_training
 from iarcs_env import FloorPlan, Layout, get_room
 from iarcs_env.datasets import save_layouts
 from iarcs_env.scene import SceneBatch, floor_features
