@@ -9,7 +9,8 @@ Model FLOPs are what torch's FLOP counter counts for one step of the plain layer
 (B, P, F) activation formed, as :meth:`PointNetEncoder.encode_reference` does), forward and backward. The
 step as it runs does fewer (its max-pool backward touches only the arg-max points); that count is
 ``executed_flops_per_room``. Shares: the parts of the step timed with a synchronisation between them (the
-x0-hat losses, inside forward and backward, timed on their own).
+x0-hat losses, inside forward and backward, timed on their own). ``plain_rooms_per_s``: the same step with the
+plain layers and the x0-hat losses on every scene, as it was before it was made fast, measured in the same run.
 
     .venv/bin/python benchmarks/bench_pretrain.py [--device cpu|cuda] [--json FILE]
     .venv/bin/python benchmarks/bench_pretrain.py --presets small --batches 512     # one row
@@ -97,8 +98,15 @@ class Setup:
         return training_step(self.model, self.net, self.ema, self.opt, self.schedule, self.cfg, self.spec, self.stats,
                              self.weights, self.next_batch, 1e-4, 0.999, mark)
 
-    def seconds_per_step(self, repeats: int) -> float:
-        """Median over ``repeats`` timings of 3 steps each, without synchronisations inside."""
+    def seconds_per_step(self, repeats: int, plain: bool = False) -> float:
+        """Median over ``repeats`` timings of 3 steps each, without synchronisations inside; ``plain``: the step
+        with the plain layers and the x0-hat losses on every scene (what the step was before it was made fast)."""
+        with plain_step() if plain else contextlib.nullcontext():
+            if plain:
+                self.step()  # warm-up of the other path
+            return self._seconds_per_step(repeats)
+
+    def _seconds_per_step(self, repeats: int) -> float:
         times = []
         for _ in range(repeats):
             synchronize(self.device)
@@ -146,16 +154,24 @@ class Setup:
         return sorted(times)[len(times) // 2]
 
     def flops_per_room(self, reference: bool) -> float:
-        """FLOPs of one forward and backward pass per room (torch's counter); ``reference``: of the plain layers."""
+        """FLOPs of one forward and backward pass per room (torch's counter); ``reference``: of the plain step."""
         batch = self.next_batch()
-        patch = mock.patch.object(PointNetEncoder, "encode", PointNetEncoder.encode_reference) if reference else \
-            contextlib.nullcontext()
         counter = FlopCounterMode(display=False)
-        with patch, counter, torch.autocast(self.device.type, dtype=torch.bfloat16,
+        with plain_step() if reference else contextlib.nullcontext(), counter, torch.autocast(self.device.type, dtype=torch.bfloat16,
                                             enabled=self.cfg.precision == "bf16"):
             batch_loss(self.net, self.schedule, batch, self.cfg, self.spec, self.stats, self.weights).mean().backward()
         self.net.zero_grad(set_to_none=True)
         return counter.get_total_flops() / self.batch
+
+
+@contextlib.contextmanager
+def plain_step():
+    """The step as plain layers: the PointNet's (B, P, F) activation formed, the x0-hat losses on every scene."""
+    import agents.pretrain as pretrain
+
+    with mock.patch.object(PointNetEncoder, "encode", PointNetEncoder.encode_reference), \
+            mock.patch.object(pretrain, "on_rows", lambda mask, per_scene, *scenes: per_scene(*scenes) * mask):
+        yield
 
 
 def fits(preset: str, batch: int, device: torch.device, data, stats, max_step_seconds: float) -> bool:
@@ -214,15 +230,19 @@ def main(argv=None) -> int:
                 setup.step()  # warm-up (compiles)
                 setup.step()
                 seconds = setup.seconds_per_step(args.repeats)
+                plain_seconds = setup.seconds_per_step(args.repeats, plain=True) if not compile_ else None
                 model_flops, executed = setup.flops_per_room(True), setup.flops_per_room(False)
                 row = {"device": str(device), "preset": preset, "batch": batch, "compile": compile_,
                        "rooms_per_s": batch / seconds, "flops_per_room": model_flops,
                        "executed_flops_per_room": executed, "matmul_flops_per_s": matmul,
-                       "fraction": batch / seconds * model_flops / matmul, "shares": setup.shares(args.repeats)}
+                       "fraction": batch / seconds * model_flops / matmul, "shares": setup.shares(args.repeats),
+                       "plain_rooms_per_s": batch / plain_seconds if plain_seconds else None}
                 rows.append(row)
                 print(f"{preset:6s} batch {batch:6d}{' compiled' if compile_ else ''}: {row['rooms_per_s']:9.0f} rooms/s, "
                       f"{model_flops / 1e6:.0f} MFLOP/room (executed {executed / 1e6:.0f}), "
-                      f"{row['fraction']:.1%} of the matmul rate; shares "
+                      f"{row['fraction']:.1%} of the matmul rate"
+                      + (f"; {plain_seconds / seconds:.2f} x the plain step's {row['plain_rooms_per_s']:.0f} rooms/s"
+                         if plain_seconds else "") + "; shares "
                       + ", ".join(f"{k} {v:.0%}" for k, v in row["shares"].items()), flush=True)
                 del setup
                 if device.type == "cuda":
