@@ -279,6 +279,24 @@ def rooms_label(n: float) -> str:
     return f"{n / 1e6:g}M" if n >= 1e6 else f"{n / 1e3:g}k" if n >= 1e3 else f"{n:g}"
 
 
+def table(files: list[str]) -> str:
+    """The rows of ``files`` as a Markdown table (the data's figures last)."""
+    lines = ["| variant | minutes | rooms seen | exactly one bed | beds/room TVD | objects/room | bed + >= 2 nightstands "
+             "| two_nightstands given it | wardrobe against a wall given it |", "|---|---:|---:|---:|---:|---:|---:|---:|---:|"]
+    data = None
+    for path in files:
+        for r in json.loads(Path(path).read_text()):
+            s, data = r["samples"], r["data"]
+            lines.append(f"| {r['variant']} | {r['budget_minutes']:g} | {r['rooms_seen']:,} | {s['one_bed']:.0%} | "
+                         f"{r['beds_per_room_tv']:.2f} | {s['objects_per_room']:.2f} | {s['bed_and_2_nightstands']:.1%} | "
+                         f"{s['two_nightstands_given']:.1%} | {s['wardrobe_back_to_wall_given']:.0%} |")
+    if data is not None:
+        lines.append(f"| held-out data ({data['rooms']} rooms) | | | {data['one_bed']:.0%} | 0 | "
+                     f"{data['objects_per_room']:.2f} | {data['bed_and_2_nightstands']:.1%} | "
+                     f"{data['two_nightstands_given']:.1%} | {data['wardrobe_back_to_wall_given']:.0%} |")
+    return "\n".join(lines)
+
+
 def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--variant", default="present", help=f"one of {', '.join(VARIANTS)}, or several joined by +")
@@ -299,11 +317,13 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--threads", type=int, default=1, help="torch threads (1: two variants side by side on 2 cores)")
     ap.add_argument("--device", default="cpu")
     ap.add_argument("--quiet", action="store_true", help="no progress bar or training log")
-    ap.add_argument("--plot", nargs="+", metavar="JSON", help="draw the curves of these row files instead")
+    ap.add_argument("--plot", nargs="+", metavar="JSON",
+                    help="draw the curves of these row files instead, and print them as a Markdown table")
     ap.add_argument("--png", default=str(OUT / "curves.png"), help="where --plot writes")
     args = ap.parse_args(argv)
     if args.plot:
         print(f"wrote {plot(args.plot, args.png)}")
+        print(table(args.plot))
     else:
         variant_options(args.variant)  # an unknown name fails before the data is generated
         run(args)
