@@ -1,7 +1,8 @@
 """Pretraining throughput: rooms per second of the full training step (batch drawn and augmented on the
 device, forward, backward, optimizer, EMA, the x0-hat losses) with the shipped GPU recipe's losses
 (experiments/pretrain_bedroom_gpu.yaml), next to the matrix-multiply rate measured in the same run (float32
-on the CPU, bfloat16 on CUDA, square 1024 / 8192 matrices) and the model FLOPs per room:
+on the CPU, bfloat16 on CUDA, square 1024 / 8192 matrices; the best of the rates measured before the first row and
+after each row's timings, since a shared machine's rate drifts) and the model FLOPs per room:
 
     fraction = rooms/s x model FLOPs per room / matmul FLOP/s
 
@@ -231,6 +232,7 @@ def main(argv=None) -> int:
                 setup.step()
                 seconds = setup.seconds_per_step(args.repeats)
                 plain_seconds = setup.seconds_per_step(args.repeats, plain=True) if not compile_ else None
+                matmul = max(matmul, matmul_flops(device))  # the best of the rates measured so far: a strict reference
                 model_flops, executed = setup.flops_per_room(True), setup.flops_per_room(False)
                 row = {"device": str(device), "preset": preset, "batch": batch, "compile": compile_,
                        "rooms_per_s": batch / seconds, "flops_per_room": model_flops,
