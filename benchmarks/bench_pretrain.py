@@ -200,7 +200,9 @@ def largest_batch(preset: str, device: torch.device, data, stats, max_step_secon
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--device", default="cpu", help="cpu or cuda (default cpu)")
-    p.add_argument("--presets", default="small,paper", help="comma-separated presets (default small,paper)")
+    p.add_argument("--presets", default=None,
+                   help="comma-separated presets (default small,paper on CUDA; small on the CPU, where a paper-size step "
+                        "takes half a minute)")
     p.add_argument("--batches", default="512,max", help="comma-separated batch sizes and/or 'max' (default 512,max)")
     p.add_argument("--repeats", type=int, default=5, help="timings per row (default 5; each of 3 steps)")
     p.add_argument("--compile", action="store_true", help="also time the step with torch.compile (CUDA)")
@@ -221,7 +223,8 @@ def main(argv=None) -> int:
           f"device {device}" + (f" ({torch.cuda.get_device_name(device)})" if device.type == "cuda" else ""))
     print(f"matmul ({'bf16' if device.type == 'cuda' else 'fp32'}): {matmul / 1e9:.1f} GFLOP/s")
     rows = []
-    for preset in args.presets.split(","):
+    presets = args.presets or ("small,paper" if device.type == "cuda" else "small")
+    for preset in presets.split(","):
         batches = []
         for b in args.batches.split(","):
             batches.append(largest_batch(preset, device, data, stats, args.max_step_seconds) if b == "max" else int(b))
