@@ -280,20 +280,21 @@ def rooms_label(n: float) -> str:
 
 
 def table(files: list[str]) -> str:
-    """The rows of ``files`` as a Markdown table (the data's figures last)."""
+    """The rows of ``files`` as a Markdown table (the data's figures last; "-" where a rate has no rooms)."""
+    pct = lambda v, digits=1: "-" if v is None else f"{v:.{digits}%}"  # noqa: E731
     lines = ["| variant | minutes | rooms seen | exactly one bed | beds/room TVD | objects/room | bed + >= 2 nightstands "
              "| two_nightstands given it | wardrobe against a wall given it |", "|---|---:|---:|---:|---:|---:|---:|---:|---:|"]
     data = None
     for path in files:
         for r in json.loads(Path(path).read_text()):
             s, data = r["samples"], r["data"]
-            lines.append(f"| {r['variant']} | {r['budget_minutes']:g} | {r['rooms_seen']:,} | {s['one_bed']:.0%} | "
-                         f"{r['beds_per_room_tv']:.2f} | {s['objects_per_room']:.2f} | {s['bed_and_2_nightstands']:.1%} | "
-                         f"{s['two_nightstands_given']:.1%} | {s['wardrobe_back_to_wall_given']:.0%} |")
+            lines.append(f"| {r['variant']} | {r['budget_minutes']:g} | {r['rooms_seen']:,} | {pct(s['one_bed'], 0)} | "
+                         f"{r['beds_per_room_tv']:.2f} | {s['objects_per_room']:.2f} | {pct(s['bed_and_2_nightstands'])} | "
+                         f"{pct(s['two_nightstands_given'])} | {pct(s['wardrobe_back_to_wall_given'], 0)} |")
     if data is not None:
-        lines.append(f"| held-out data ({data['rooms']} rooms) | | | {data['one_bed']:.0%} | 0 | "
-                     f"{data['objects_per_room']:.2f} | {data['bed_and_2_nightstands']:.1%} | "
-                     f"{data['two_nightstands_given']:.1%} | {data['wardrobe_back_to_wall_given']:.0%} |")
+        lines.append(f"| held-out data ({data['rooms']} rooms) | | | {pct(data['one_bed'], 0)} | 0 | "
+                     f"{data['objects_per_room']:.2f} | {pct(data['bed_and_2_nightstands'])} | "
+                     f"{pct(data['two_nightstands_given'])} | {pct(data['wardrobe_back_to_wall_given'], 0)} |")
     return "\n".join(lines)
 
 

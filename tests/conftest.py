@@ -32,6 +32,17 @@ def real_file(name: str) -> Path:
 
 
 @pytest.fixture
+def one_thread():
+    """Tiny models run fastest (and reproducibly) on one torch thread; the setting is restored afterwards."""
+    import torch
+
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(n)
+
+
+@pytest.fixture
 def real_bedrooms_path() -> Path:
     return real_file("bedroom_val.json")
 
