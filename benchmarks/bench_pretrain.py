@@ -39,9 +39,11 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 import torch  # noqa: E402
 from torch.utils.flop_counter import FlopCounterMode  # noqa: E402
 
-from agents.denoiser import PointNetEncoder, SceneDenoiser  # noqa: E402
+from agents.denoiser import SceneDenoiser  # noqa: E402
+from agents.pointnet import PointNetEncoder  # noqa: E402
 from agents.pretrain import (TrainingBatch, batch_loss, draw_batch, load_config, loss_feature_weights,  # noqa: E402
-                             overlap_excess, out_of_bound_excess, training_step)
+                             training_step)
+from agents.x0_losses import out_of_bound_excess, overlap_excess  # noqa: E402
 from agents.pretrain_data import SceneTensors, stats_for_training  # noqa: E402
 from iarcs_env import get_room  # noqa: E402
 from iarcs_env.datasets.procedural import generate_layouts  # noqa: E402
@@ -168,10 +170,10 @@ class Setup:
 @contextlib.contextmanager
 def plain_step():
     """The step as plain layers: the PointNet's (B, P, F) activation formed, the x0-hat losses on every scene."""
-    import agents.pretrain as pretrain
+    import agents.x0_losses as x0_losses
 
     with mock.patch.object(PointNetEncoder, "encode", PointNetEncoder.encode_reference), \
-            mock.patch.object(pretrain, "on_rows", lambda mask, per_scene, *scenes: per_scene(*scenes) * mask):
+            mock.patch.object(x0_losses, "on_rows", lambda mask, per_scene, *scenes: per_scene(*scenes) * mask):
         yield
 
 

@@ -391,7 +391,8 @@ def test_the_pointnet_max_pool_matches_the_plain_layers(monkeypatch):
     """:class:`PointMaxPool` (no (B, P, F) activation, a sparse backward) gives the plain layers' features and
     gradients, in float64 to rounding, across chunks, for an all-zero (unconditional) floor whose points tie, and
     for a subset that repeats points."""
-    from agents.denoiser import PointMaxPool, PointNetEncoder, point_subset
+    from agents.denoiser import point_subset
+    from agents.pointnet import PointMaxPool, PointNetEncoder
 
     monkeypatch.setattr(PointMaxPool, "CHUNK_ELEMENTS", 2 * 40 * 64)  # two rooms a chunk
     torch.manual_seed(0)

@@ -13,7 +13,8 @@ import torch
 
 from agents.denoiser import ScenePrior
 from agents.pretrain import (PRIOR_FILE, STATE_FILE, PretrainConfig, config_from_dict, load_config,
-                             loss_feature_weights, lr_at, out_of_bound_excess, overlap_excess, train)
+                             loss_feature_weights, lr_at, train)
+from agents.x0_losses import out_of_bound_excess, overlap_excess
 from agents.pretrain_data import SceneTensors, encode_batch, resolve_dataset, stats_for_training
 from iarcs_env import FloorPlan, Layout, get_room
 from iarcs_env.datasets import save_layouts
@@ -376,7 +377,9 @@ def test_the_fast_training_step_matches_a_plain_reference_step(tmp_path):
     from unittest import mock
 
     import agents.pretrain as pre
-    from agents.denoiser import PointNetEncoder, SceneDenoiser
+    import agents.x0_losses as x0_losses
+    from agents.denoiser import SceneDenoiser
+    from agents.pointnet import PointNetEncoder
     from iarcs_env.schedule import NoiseSchedule
 
     rooms = toy_bedrooms(40)
@@ -401,7 +404,7 @@ def test_the_fast_training_step_matches_a_plain_reference_step(tmp_path):
         fast, _ = pre.training_step(nets[0], nets[0], emas[0], fast_opt, schedule, cfg, BEDROOM, stats, weights,
                                     lambda: batch, 1e-3, 0.9)
         with mock.patch.object(PointNetEncoder, "encode", PointNetEncoder.encode_reference), \
-                mock.patch.object(pre, "on_rows", lambda mask, per_scene, *scenes: per_scene(*scenes) * mask):
+                mock.patch.object(x0_losses, "on_rows", lambda mask, per_scene, *scenes: per_scene(*scenes) * mask):
             plain = pre.batch_loss(nets[1], schedule, batch, cfg, BEDROOM, stats, weights).mean()
         plain_opt.zero_grad()
         plain.backward()
