@@ -353,7 +353,7 @@ class SceneDenoiser(nn.Module):
         along the normal) are appended."""
         q, n = points[..., :2], points[..., 2:]
         if extents is None:
-            p = x[..., [0, 2]]  # scaled translation x, z: the scaling of the floor points
+            p = x[..., 0:3:2]  # scaled translation x, z: the scaling of the floor points
         else:
             centre, ext, u_x, u_z, half = self._slot_geometry(x, extents)
             p = centre / ext.clamp_min(1e-2)  # (an all-zero, unconditional floor has no extent)
@@ -404,10 +404,10 @@ class SceneDenoiser(nn.Module):
         """Metric geometry of noisy room-frame slots (see :func:`iarcs_env.scene.translation_scale`): centre
         (B, N, 2), the floor's half-extents (B, 1, 2), the object's local x and z axes in (x, z), half size."""
         ext = self._metres(extents, 0)[:, None]
-        half = self._metres(x[..., [3, 5]], 1).clamp_min(0)
+        half = self._metres(x[..., 3:6:2], 1).clamp_min(0)
         yaw = F.normalize(x[..., 6:8], dim=-1, eps=1e-3)  # (cos, sin)
         free = (ext - footprint_reach(half, yaw[..., 0], yaw[..., 1])).clamp_min(MIN_FREE_RANGE)
-        centre = x[..., [0, 2]].clamp(-1, 1) * free
+        centre = x[..., 0:3:2].clamp(-1, 1) * free
         u_x = torch.stack([yaw[..., 0], -yaw[..., 1]], -1)
         u_z = torch.stack([yaw[..., 1], yaw[..., 0]], -1)
         return centre, ext, u_x, u_z, half

@@ -37,7 +37,7 @@ def physics_penalty(x0: torch.Tensor, stats, floors, out_of_bound_weight: float 
     labels = x0[..., 8:].argmax(-1)
     valid = labels != spec.empty_index
     ground = torch.tensor(spec.ground_mask(), device=x0.device)[labels]
-    reach = footprint_reach(half[..., [0, 2]], torch.cos(yaws), torch.sin(yaws))
+    reach = footprint_reach(half[..., 0:3:2], torch.cos(yaws), torch.sin(yaws))
     extent = torch.stack([reach[..., 0], half[..., 1], reach[..., 1]], -1)  # (B, N, 3) half extents x, y, z
     lo, hi = trans - extent, trans + extent
     overlap = (torch.minimum(hi[:, :, None], hi[:, None]) - torch.maximum(lo[:, :, None], lo[:, None])).clamp_min(0)

@@ -85,7 +85,8 @@ class SceneTensors:
             k = torch.randint(0, 4, (b,), generator=generator, device=labels.device)
             ang = k.float() * (math.pi / 2)
             c, s = torch.cos(ang).round(), torch.sin(ang).round()  # exact for multiples of 90 degrees
-            trans[..., [0, 2]] = rotate_xz_tensor(trans[..., [0, 2]], c[:, None], s[:, None])
+            trans[..., 0::2] = rotate_xz_tensor(trans[..., 0::2], c[:, None], s[:, None])  # x, z (a slice, not a
+            # list index: that would copy the index to the GPU and wait)
             pts[..., 0:2] = rotate_xz_tensor(pts[..., 0:2], c[:, None], s[:, None])
             pts[..., 2:4] = rotate_xz_tensor(pts[..., 2:4], c[:, None], s[:, None])
             yaws = yaws + ang[:, None]

@@ -35,7 +35,7 @@ def overlap_excess(spec, stats: DatasetStats, extents: torch.Tensor, weight: flo
 
     def overlaps(x, extents):  # (B, N, N, 3) overlap lengths of each pair of boxes' bounds along x, y and z
         trans, half, yaws = decode_geometry(x, stats, extents)
-        reach = footprint_reach(half[..., [0, 2]], torch.cos(yaws), torch.sin(yaws))
+        reach = footprint_reach(half[..., 0:3:2], torch.cos(yaws), torch.sin(yaws))
         bound = torch.stack([reach[..., 0], half[..., 1], reach[..., 1]], -1)
         lo, hi = trans - bound, trans + bound
         return (torch.minimum(hi[:, :, None], hi[:, None]) - torch.maximum(lo[:, :, None], lo[:, None])).clamp_min(0)
@@ -64,7 +64,7 @@ def out_of_bound_excess(spec, stats: DatasetStats, extents: torch.Tensor, points
 
     def behind(x, extents, points):  # (B, N, 4) metres behind the nearest wall, per footprint corner
         trans, half, yaws = decode_geometry(x, stats, extents)
-        corners = box_corners_xz(trans[..., [0, 2]], half[..., [0, 2]], yaws)[..., None, :]  # (B, N, 4, 1, 2)
+        corners = box_corners_xz(trans[..., 0:3:2], half[..., 0:3:2], yaws)[..., None, :]  # (B, N, 4, 1, 2)
         offset = corners - points[:, None, None, :, :2]  # (B, N, 4, P, 2)
         nearest = offset.square().sum(-1).argmin(-1, keepdim=True)
         along_normal = (offset * points[:, None, None, :, 2:]).sum(-1).gather(-1, nearest).squeeze(-1)

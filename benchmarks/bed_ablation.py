@@ -52,8 +52,8 @@ def bed_ablation(prior: ScenePrior, rooms: list, timesteps, seed: int = 0) -> di
             restored.append(SceneBatch.decode(x0_hat, prior.stats, clean.floors))
         sel = nightstand & (restored[0].labels == clean.labels) & (restored[1].labels == clean.labels)
         scene = torch.nonzero(sel)[:, 0]
-        truth = clean.translations[..., [0, 2]][sel]
-        with_bed, without = (r.translations[..., [0, 2]][sel] for r in restored)
+        truth = clean.translations[..., 0:3:2][sel]
+        with_bed, without = (r.translations[..., 0:3:2][sel] for r in restored)
 
         def out_from_side(p):  # metres out from the true bed's side, in its frame (negative: within its width)
             lateral = rel.local_offset(torch.stack([bed_xz[scene], p], 1), torch.stack([bed_yaw[scene]] * 2, 1))[:, 0, 1, 0]

@@ -98,7 +98,7 @@ def floor_usage(prior: ScenePrior, reference: list, gen: list | None = None) -> 
         tt = torch.full((x0.shape[0],), t)
         x_t = prior.schedule.q_sample(x0, tt, noise)
         for name, fl in conditions.items():
-            out[f"xz_loss_t{t}_{name}"] = float((net(x_t, tt, fl) - noise)[..., [0, 2]].pow(2).mean())
+            out[f"xz_loss_t{t}_{name}"] = float((net(x_t, tt, fl) - noise)[..., 0:3:2].pow(2).mean())
     if gen is not None:
         floors = [lay.centred().floor for lay in reference]
         swapped = []
@@ -160,7 +160,7 @@ def position_errors(result: SceneBatch, reference: SceneBatch) -> dict:
     """Median distance (m) on the floor between each object of ``reference`` and the same slot of ``result``
     (objects whose class the denoising kept): all of them, beds and nightstands."""
     kept = reference.mask & result.mask & (result.labels == reference.labels)
-    err = (result.translations[..., [0, 2]] - reference.translations[..., [0, 2]]).norm(dim=-1)
+    err = (result.translations[..., 0:3:2] - reference.translations[..., 0:3:2]).norm(dim=-1)
     groups = {"all": kept, "bed": kept & rel.class_mask(reference.labels, reference.spec.classes, ["bed"]),
               "nightstand": kept & rel.class_mask(reference.labels, reference.spec.classes, ["nightstand"])}
     return {name: float(err[m].median()) if m.any() else float("nan") for name, m in groups.items()}

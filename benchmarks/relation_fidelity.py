@@ -38,7 +38,7 @@ def relation_row(scenes: SceneBatch) -> dict:
     nightstand = rel.class_mask(scenes.labels, spec.classes, ["nightstand"])
     edges = rel.floor_edges(scenes.floors, dtype=torch.float32)
     back = rel.back_to_wall(scenes.translations, scenes.half_sizes, scenes.yaws, edges)
-    along = rel.local_offset(scenes.translations[..., [0, 2]], scenes.yaws)[..., 1] / scenes.half_sizes[..., 2][..., None]
+    along = rel.local_offset(scenes.translations[..., 0:3:2], scenes.yaws)[..., 1] / scenes.half_sizes[..., 2][..., None]
     pairs = bed[:, :, None] & nightstand[:, None, :]
     quartiles = np.quantile(along[pairs].numpy(), [0.25, 0.5, 0.75]) if pairs.any() else [np.nan] * 3
     row = {"beds / room": float(bed.sum(1).float().mean()),
@@ -57,7 +57,7 @@ def nightstands_beside_head(scenes: SceneBatch, bed: torch.Tensor, nightstand: t
     two_nightstands wants it (along the head half, 0 to 0.5 m out from the bed's side), and of each part."""
     keys = ("nightstands beside the head half %", "nightstands out from the side %", "nightstands along the head half %")
     gap_key = "nightstand out from the bed's side, m (q1, median, q3)"
-    xz = scenes.translations[..., [0, 2]].double()
+    xz = scenes.translations[..., 0:3:2].double()
     offset = rel.local_offset(xz, scenes.yaws.double())  # [b, i, j]: j in i's frame
     nearest = rel.centre_distance(xz).masked_fill(~bed[:, :, None], float("inf")).argmin(1)  # [b, j] -> bed i
     b, j = torch.nonzero(nightstand & bed.any(1, keepdim=True), as_tuple=True)

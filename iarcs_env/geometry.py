@@ -189,10 +189,10 @@ def _broadcast_lead(P: torch.Tensor, Q: torch.Tensor):
 def footprints(translations: torch.Tensor, half_sizes: torch.Tensor, yaws: torch.Tensor,
                shrink: float = 0.0) -> torch.Tensor:
     """Footprint corners ``(..., 4, 2)`` of boxes, each side moved in by ``shrink`` metres (clamped at 0)."""
-    half = half_sizes[..., [0, 2]]
+    half = half_sizes[..., 0:3:2]
     if shrink:
         half = (half - shrink).clamp_min(0.0)
-    return box_corners_xz(translations[..., [0, 2]], half, yaws)
+    return box_corners_xz(translations[..., 0:3:2], half, yaws)
 
 
 @single_thread()

@@ -93,7 +93,7 @@ class _Scenes:
 
     @cached_property
     def offset(self) -> torch.Tensor:  # [b, i, j]: centre of j in i's frame (lateral, forward)
-        return rel.local_offset(self.t[..., [0, 2]], self.y)
+        return rel.local_offset(self.t[..., 0:3:2], self.y)
 
     @cached_property
     def angle(self) -> torch.Tensor:  # [b, i, j]: from i's forward to i -> j
@@ -101,7 +101,7 @@ class _Scenes:
 
     @cached_property
     def distance(self) -> torch.Tensor:
-        return rel.centre_distance(self.t[..., [0, 2]])
+        return rel.centre_distance(self.t[..., 0:3:2])
 
     def gap(self, pairs: torch.Tensor) -> torch.Tensor:
         """``(B, N, N)`` footprint gap (:func:`~iarcs_env.relations.footprint_gap`) of the ``pairs`` (B, N, N), inf
@@ -125,7 +125,7 @@ class _Scenes:
         midpoint as outside the floor and returns minus the distance to the opposite wall)."""
         edges = rel.floor_edges(self.batch.floors, device=self.t.device, dtype=torch.float64)
         f = rel.forward_xz(self.y)
-        p = self.t[..., [0, 2]] - f * self.h[..., 2:3]  # back edge midpoints (B, N, 2)
+        p = self.t[..., 0:3:2] - f * self.h[..., 2:3]  # back edge midpoints (B, N, 2)
         a, e = edges[:, None, :, :2], edges[:, None, :, 2:] - edges[:, None, :, :2]  # (B, 1, E, 2)
         r = a - p[:, :, None]
         back = -f[:, :, None]

@@ -124,7 +124,7 @@ def footprint_gap(translations: torch.Tensor, half_sizes: torch.Tensor, yaws: to
     """``(B, N, N)`` shortest floor distance between the footprints of i and j (0 when they touch or
     overlap; the diagonal is 0). Exact for the oriented rectangles: separating-axis test for the overlap,
     otherwise the smallest corner-to-edge distance in either direction."""
-    c = box_corners_xz(translations[..., [0, 2]], half_sizes[..., [0, 2]], yaws)  # (B, N, 4, 2)
+    c = box_corners_xz(translations[..., 0:3:2], half_sizes[..., 0:3:2], yaws)  # (B, N, 4, 2)
     ci = c[:, :, None, :, None, :]  # corners of i
     cj = c[:, None, :, :, None, :]  # corners of j
     ai, bi = c[:, :, None, None], c.roll(-1, 2)[:, :, None, None]  # (B, N, 1, 1, 4, 2): edges of i
@@ -171,14 +171,14 @@ def wall_distance(translations: torch.Tensor, half_sizes: torch.Tensor, yaws: to
                   edges: torch.Tensor) -> torch.Tensor:
     """``(B, N)`` shortest distance from each footprint to its floor's boundary (walls); 0 when the
     footprint touches or crosses the boundary or its centre lies outside the floor."""
-    c = box_corners_xz(translations[..., [0, 2]], half_sizes[..., [0, 2]], yaws).to(edges.dtype)  # (B, N, 4, 2)
+    c = box_corners_xz(translations[..., 0:3:2], half_sizes[..., 0:3:2], yaws).to(edges.dtype)  # (B, N, 4, 2)
     fa, fb = c[:, :, :, None], c.roll(-1, 2)[:, :, :, None]  # footprint edges (B, N, 4, 1, 2)
     wa, wb = edges[:, None, None, :, :2], edges[:, None, None, :, 2:]  # walls (B, 1, 1, E, 2)
     d = torch.stack([_point_segment_distance(fa, wa, wb), _point_segment_distance(fb, wa, wb),
                      _point_segment_distance(wa, fa, fb), _point_segment_distance(wb, fa, fb)], -1).amin(-1)
     d = d.flatten(-2).amin(-1)
     cross = _segments_cross(fa, fb, wa, wb).flatten(-2).any(-1)
-    inside = inside_floor(translations[..., [0, 2]].to(edges.dtype), edges)
+    inside = inside_floor(translations[..., 0:3:2].to(edges.dtype), edges)
     return torch.where(cross | ~inside, torch.zeros_like(d), d)
 
 
@@ -187,7 +187,7 @@ def back_to_wall(translations: torch.Tensor, half_sizes: torch.Tensor, yaws: tor
     """``(B, N)`` distance from the midpoint of each object's back edge to the floor boundary straight behind
     it (along -forward). Negative when that midpoint is outside the floor (minus how far it pokes through)."""
     f = forward_xz(yaws).to(edges.dtype)
-    p = translations[..., [0, 2]].to(edges.dtype) - f * half_sizes[..., 2:3].to(edges.dtype)  # (B, N, 2)
+    p = translations[..., 0:3:2].to(edges.dtype) - f * half_sizes[..., 2:3].to(edges.dtype)  # (B, N, 2)
     back = -f
     a, b = edges[:, None, :, :2], edges[:, None, :, 2:]  # (B, 1, E, 2)
     e = b - a

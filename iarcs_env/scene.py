@@ -137,7 +137,7 @@ class SceneBatch:
 
     def footprints(self) -> torch.Tensor:
         """(B, N, 4, 2) footprint corners in (x, z)."""
-        return box_corners_xz(self.translations[..., [0, 2]], self.half_sizes[..., [0, 2]], self.yaws)
+        return box_corners_xz(self.translations[..., 0:3:2], self.half_sizes[..., 0:3:2], self.yaws)
 
     def __getitem__(self, index) -> "SceneBatch":
         """Scenes ``index`` (a slice, a sequence of indices or a boolean mask) as a new batch."""
@@ -273,7 +273,7 @@ def translation_scale(stats: "DatasetStats", like: torch.Tensor, extents: torch.
         raise ValueError("room-frame features need the floors' half-extents: build the SceneBatch with its "
                          "floor plans, or pass extents=floor_half_extents(floors)")
     e = extents.to(device=like.device, dtype=like.dtype)[:, None]  # (B, 1, 2)
-    free = (e - footprint_reach(half_sizes[..., [0, 2]], torch.cos(yaws), torch.sin(yaws))).clamp_min(MIN_FREE_RANGE)
+    free = (e - footprint_reach(half_sizes[..., 0:3:2], torch.cos(yaws), torch.sin(yaws))).clamp_min(MIN_FREE_RANGE)
     lo = torch.stack([-free[..., 0], lo[1].expand(free.shape[:-1]), -free[..., 1]], -1)
     hi = torch.stack([free[..., 0], hi[1].expand(free.shape[:-1]), free[..., 1]], -1)
     return lo, hi

@@ -99,7 +99,7 @@ def check_reach_1m(batch: SceneBatch) -> np.ndarray:
 def check_tv_from_bed(batch: SceneBatch) -> np.ndarray:
     """tv_from_bed: a bed and a TV stand 2-4 m apart, each within 30 degrees of facing the other."""
     t, _, y = _geometry(batch)
-    xz = t[..., [0, 2]]
+    xz = t[..., 0:3:2]
     dist = rel.centre_distance(xz)
     angle = rel.facing_angle(xz, y)  # [b, i, j]: from i's forward to i -> j
     limit = math.radians(30) + EPS
@@ -113,7 +113,7 @@ def check_study_zone(batch: SceneBatch) -> np.ndarray:
     """study_zone: a chair, stool or dressing chair in front of a desk (laterally within the desk's width
     + 0.1 m on each side, centre ahead of the desk's centre and at most 0.9 m beyond its front)."""
     t, h, y = _geometry(batch)
-    off = rel.local_offset(t[..., [0, 2]], y)  # seat j in desk i's frame
+    off = rel.local_offset(t[..., 0:3:2], y)  # seat j in desk i's frame
     half_w, half_d = h[..., 0][:, :, None], h[..., 2][:, :, None]
     ok = ((off[..., 0].abs() <= half_w + 0.1 + EPS) & (off[..., 1] > 0) & (off[..., 1] <= half_d + 0.9 + EPS)
           & _pairs(batch, _mask(batch, "desk"), _mask(batch, "chair", "stool", "dressing_chair")))
@@ -144,7 +144,7 @@ def check_two_nightstands(batch: SceneBatch) -> np.ndarray:
     """two_nightstands: one bed with a nightstand left and one right of its head half, each centre 0-0.5 m
     out from the bed's side."""
     t, h, y = _geometry(batch)
-    off = rel.local_offset(t[..., [0, 2]], y)  # nightstand j in bed i's frame
+    off = rel.local_offset(t[..., 0:3:2], y)  # nightstand j in bed i's frame
     lat, fwd = off[..., 0], off[..., 1]
     beside = (beside_head_half(lat, fwd, h[..., 0][:, :, None], h[..., 2][:, :, None])
               & _pairs(batch, _mask(batch, "bed"), _mask(batch, "nightstand")))

@@ -119,7 +119,7 @@ class Scene:
     # --- pairwise relations ------------------------------------------------------------------------------
     def distance(self) -> torch.Tensor:
         """(B, N, N) centre-to-centre distance on the floor (m)."""
-        return self._cached("distance", lambda: rel.centre_distance(self._batch.translations[..., [0, 2]]))
+        return self._cached("distance", lambda: rel.centre_distance(self._batch.translations[..., 0:3:2]))
 
     def gap(self) -> torch.Tensor:
         """(B, N, N) shortest floor distance between the two footprints (m; 0 when they touch or overlap)."""
@@ -130,13 +130,13 @@ class Scene:
         """(B, N, N, 2) centre of j in i's frame: [..., 0] lateral (+ = i's left), [..., 1] forward (+ = in
         front of i), metres."""
         b = self._batch
-        return self._cached("offset", lambda: rel.local_offset(b.translations[..., [0, 2]], b.yaws))
+        return self._cached("offset", lambda: rel.local_offset(b.translations[..., 0:3:2], b.yaws))
 
     def facing_angle(self) -> torch.Tensor:
         """(B, N, N) angle (rad, 0..pi) between i's forward and the direction from i to j (0: i faces j;
         this is also the viewing angle from i to j)."""
         b = self._batch
-        return self._cached("facing", lambda: rel.facing_angle(b.translations[..., [0, 2]], b.yaws))
+        return self._cached("facing", lambda: rel.facing_angle(b.translations[..., 0:3:2], b.yaws))
 
     # --- walls -------------------------------------------------------------------------------------------
     def _edges(self):
