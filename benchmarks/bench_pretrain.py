@@ -156,6 +156,23 @@ class Setup:
             times.append(time.perf_counter() - t0)
         return sorted(times)[len(times) // 2]
 
+    def gpu_profile(self, steps: int = 3) -> dict:
+        """On CUDA, per step: the kernels launched, the GPU's busy time and the host's time to queue the step (ms).
+        Queueing about as long as the GPU is busy means the step is bound by launches, not by the GPU."""
+        synchronize(self.device)
+        t0 = time.perf_counter()
+        for _ in range(steps):
+            self.step()
+        host_ms = (time.perf_counter() - t0) / steps * 1e3
+        synchronize(self.device)
+        with torch.profiler.profile(activities=[torch.profiler.ProfilerActivity.CUDA]) as prof:
+            for _ in range(steps):
+                self.step()
+            synchronize(self.device)
+        kernels = [e for e in prof.key_averages() if e.device_type == torch.autograd.DeviceType.CUDA]
+        return {"kernels_per_step": sum(e.count for e in kernels) / steps, "host_ms": host_ms,
+                "gpu_busy_ms": sum(e.self_device_time_total for e in kernels) / steps / 1e3}
+
     def flops_per_room(self, reference: bool) -> float:
         """FLOPs of one forward and backward pass per room (torch's counter); ``reference``: of the plain step."""
         batch = self.next_batch()
@@ -244,13 +261,17 @@ def main(argv=None) -> int:
                        "executed_flops_per_room": executed, "matmul_flops_per_s": matmul,
                        "fraction": batch / seconds * model_flops / matmul, "shares": setup.shares(args.repeats),
                        "plain_rooms_per_s": batch / plain_seconds if plain_seconds else None}
+                if device.type == "cuda":
+                    row.update(setup.gpu_profile())
                 rows.append(row)
                 print(f"{preset:6s} batch {batch:6d}{' compiled' if compile_ else ''}: {row['rooms_per_s']:9.0f} rooms/s, "
                       f"{model_flops / 1e6:.0f} MFLOP/room (executed {executed / 1e6:.0f}), "
                       f"{row['fraction']:.1%} of the matmul rate"
                       + (f"; {plain_seconds / seconds:.2f} x the plain step's {row['plain_rooms_per_s']:.0f} rooms/s"
                          if plain_seconds else "") + "; shares "
-                      + ", ".join(f"{k} {v:.0%}" for k, v in row["shares"].items()), flush=True)
+                      + ", ".join(f"{k} {v:.0%}" for k, v in row["shares"].items())
+                      + (f"; {row['kernels_per_step']:.0f} kernels/step, GPU busy {row['gpu_busy_ms']:.1f} ms, "
+                         f"queued in {row['host_ms']:.1f} ms" if "host_ms" in row else ""), flush=True)
                 del setup
                 if device.type == "cuda":
                     torch.cuda.empty_cache()

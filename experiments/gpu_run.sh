@@ -164,7 +164,7 @@ report
 # --- 2. the pretraining benchmark ---------------------------------------------------------------------------------
 if [ -z "${BENCH_ARGS:-}" ]; then
     if [ "$DEVICE" = cpu ]; then BENCH_ARGS="--presets tiny --batches 64 --rooms 200 --repeats 1"
-    else BENCH_ARGS="--presets small --batches 512,4096 --repeats 3"; fi
+    else BENCH_ARGS="--presets small --batches 4096,16384 --repeats 3"; fi
 fi
 # shellcheck disable=SC2086
 run_step benchmark "$(min "$BENCH_TIMEOUT" $(( $(left_s) - SAFETY_S )))" "$WORK/bench.log" \

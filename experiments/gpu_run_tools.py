@@ -392,12 +392,15 @@ def markdown_report(work: Path) -> str:
     bench = bench_json(work)
     L += ["## Pretraining benchmark", "", f"`{bench['command'] or '(not run)'}`: {bench['status']}", ""]
     if bench["rows"]:
-        L += ["| device | preset | batch | compiled | rooms/s | MFLOP / room | share of the matmul rate | shares |",
-              "|---|---|---:|---|---:|---:|---:|---|"]
+        L += ["| device | preset | batch | compiled | rooms/s | MFLOP / room | share of the matmul rate | shares | "
+              "kernels / step | GPU busy, queued (ms / step) |", "|---|---|---:|---|---:|---:|---:|---|---:|---|"]
         for r in bench["rows"]:
             shares = ", ".join(f"{k} {v:.0%}" for k, v in (r.get("shares") or {}).items())
+            launches = (f"{r['kernels_per_step']:,.0f} | {r['gpu_busy_ms']:.1f}, {r['host_ms']:.1f}" if "host_ms" in r
+                        else "– | –")
             L.append(f"| {r['device']} | {r['preset']} | {r['batch']} | {'yes' if r['compile'] else 'no'} | "
-                     f"{r['rooms_per_s']:,.0f} | {r['flops_per_room'] / 1e6:.1f} | {r['fraction']:.1%} | {shares} |")
+                     f"{r['rooms_per_s']:,.0f} | {r['flops_per_room'] / 1e6:.1f} | {r['fraction']:.1%} | {shares} | "
+                     f"{launches} |")
     elif bench.get("rows_printed"):
         L += ["(no JSON written; rows the benchmark printed:)", "", "```", *bench["rows_printed"], "```"]
     L += [""]
