@@ -49,6 +49,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from rewards.confine import WEAK_SANDBOX_ENV
+
 # ------------------------------------------------------------------------------------------------------
 # Limits and lists
 # ------------------------------------------------------------------------------------------------------
@@ -241,6 +243,9 @@ def check_program(code: str) -> list[str]:
             problems.append((line, "class definitions are not allowed; use functions"))
         elif isinstance(node, (ast.AsyncFunctionDef, ast.Await, ast.AsyncFor, ast.AsyncWith)):
             problems.append((line, "async code is not allowed"))
+        elif isinstance(node, ast.MatchClass):
+            problems.append((line, "class patterns (`case C(...)`) are not allowed: they read attributes, private "
+                             "ones included; compare values with if/elif or match literals"))
         elif isinstance(node, (ast.Global, ast.Nonlocal)):
             problems.append((line, "`global`/`nonlocal` are not allowed: reward programs must be stateless"))
         elif isinstance(node, ast.Name) and node.id in FORBIDDEN_NAMES:
@@ -553,6 +558,9 @@ def _worker_main(config_json: str) -> None:
     safe_builtins = {k: getattr(builtins, k) for k in SAFE_BUILTINS}
     safe_builtins.update(print=printer, __import__=restricted_import)
 
+    from rewards.confine import confine
+
+    confinement = confine(Path(__file__).resolve().parents[1])  # the kernel's guards, for good, before any program
     state = {"running": False, "phase": "reward(scene)"}
     roots = {os.path.realpath(p) for p in (sys.prefix, sys.base_prefix, sys.exec_prefix)}
     roots |= {os.path.realpath(p) for p in sys.path if p and os.path.isdir(p)}
@@ -605,7 +613,7 @@ def _worker_main(config_json: str) -> None:
             return run(program[0], _rebuild_batch(msg["batch"]))
         return {"ok": False, "message": f"unknown request {op!r}"}
 
-    _write_frame(proto_out, json.dumps({"ok": True, "ready": True, "pid": os.getpid(),
+    _write_frame(proto_out, json.dumps({"ok": True, "ready": True, "pid": os.getpid(), "confinement": confinement,
                                         "startup": time.monotonic() - t0}).encode())
     while True:
         header = _read_exact(proto_in, _HEADER.size, None)
@@ -668,6 +676,9 @@ def _death_reason(returncode: int | None, cpu_seconds: int, memory_mb: int) -> s
     return f"exited with status {returncode}"
 
 
+_WEAK_WARNED: list = []  # the weak-sandbox warning, printed once per process
+
+
 class RewardSandbox:
     """One long-lived worker process that runs one reward program at a time.
 
@@ -689,6 +700,7 @@ class RewardSandbox:
         self.startup_timeout = float(startup_timeout)
         self.code: str | None = None  # the active (last good) program
         self.startup_seconds: float | None = None
+        self.confinement: dict | None = None  # the worker's kernel guards: {"applied": [...], "missing": {...}}
         self.restarts = 0
         self._proc: subprocess.Popen | None = None
         self._fds: tuple = ()  # (write to the worker, read from the worker)
@@ -727,12 +739,31 @@ class RewardSandbox:
             os.close(from_parent)
             os.close(to_parent)
         try:
-            self._receive(time.monotonic() + self.startup_timeout)
+            ready = self._receive(time.monotonic() + self.startup_timeout)
         except _WorkerLost as err:
             tail = self._stderr_tail()
             self._kill()
             raise SandboxError(f"the reward sandbox worker failed to start: it {err}\n{tail}") from None
         self.startup_seconds = time.monotonic() - t
+        self.confinement = ready.get("confinement") or {"applied": [], "missing": {"kernel guards": "not reported"}}
+        if self.confinement["missing"]:
+            self._refuse_weak_guard()
+
+    def _refuse_weak_guard(self) -> None:
+        """On a machine where the kernel cannot confine the worker: refuse, unless IARCS_WEAK_SANDBOX=1 (then warn
+        once per process)."""
+        missing = "; ".join(f"{k}: {v}" for k, v in self.confinement["missing"].items())
+        if os.environ.get(WEAK_SANDBOX_ENV) != "1":
+            self._kill()
+            raise SandboxError(
+                f"the reward sandbox cannot confine programs on this machine ({missing}); they would run behind "
+                f"Python-level checks alone, which a determined program can get past. Use a Linux kernel with "
+                f"Landlock and seccomp (and libseccomp installed), or set {WEAK_SANDBOX_ENV}=1 to run trusted "
+                "programs anyway")
+        if not _WEAK_WARNED:
+            _WEAK_WARNED.append(True)
+            print(f"warning: reward programs run with a weaker sandbox ({missing}; {WEAK_SANDBOX_ENV}=1)",
+                  file=sys.stderr)
 
     def _stderr_tail(self, n: int = 2000) -> str:
         try:
