@@ -113,6 +113,8 @@ DEFAULT_CLAMP = 10.0
 #: Largest worker reply read by the parent (bytes), and captured ``print`` output kept per request.
 MAX_REPLY_BYTES = 4 << 20
 MAX_PRINT_CHARS = 4000
+#: The only environment variables the worker inherits (the parent's may hold API keys a program could print).
+WORKER_ENV = frozenset({"PATH", "LANG", "LC_ALL", "LC_CTYPE", "TZ", "PYTHONHASHSEED"})
 #: Number of generated fixture scenes for the smoke test (plus one empty room).
 FIXTURE_SCENES = 6
 
@@ -720,8 +722,9 @@ class RewardSandbox:
         config = {"room": self.room, "memory_mb": self.memory_mb, "cpu_seconds": self.cpu_seconds,
                   "clamp": self.clamp, "fd_in": from_parent, "fd_out": to_parent}
         root = str(Path(__file__).resolve().parents[1])
-        env = dict(os.environ, OMP_NUM_THREADS="1", MKL_NUM_THREADS="1", OPENBLAS_NUM_THREADS="1",
-                   PYTHONDONTWRITEBYTECODE="1", PYTHONPATH=os.pathsep.join(
+        env = {k: v for k, v in os.environ.items() if k in WORKER_ENV}  # no API keys or tokens for programs
+        env.update(OMP_NUM_THREADS="1", MKL_NUM_THREADS="1", OPENBLAS_NUM_THREADS="1", PYTHONDONTWRITEBYTECODE="1",
+                   PYTHONPATH=os.pathsep.join(
                        [root] + [p for p in os.environ.get("PYTHONPATH", "").split(os.pathsep) if p]))
         self._stderr = tempfile.TemporaryFile()
         t = time.monotonic()

@@ -13,6 +13,20 @@ REPO = Path(__file__).resolve().parents[1]
 REAL_DATA = REPO.parent / "shared" / "data" / "3dfront"
 
 
+def pytest_configure(config):
+    """On a machine whose kernel cannot confine the reward worker (no Landlock or seccomp), the tests of everything
+    else run it behind the Python-level guards (IARCS_WEAK_SANDBOX=1), and the hostile-program tests skip saying
+    why."""
+    import os
+
+    from rewards.confine import WEAK_SANDBOX_ENV, unavailable
+
+    missing = unavailable()
+    if missing:
+        os.environ[WEAK_SANDBOX_ENV] = "1"
+        print(f"note: the reward sandbox cannot be confined here ({missing}); its tests run with {WEAK_SANDBOX_ENV}=1")
+
+
 def load_benchmark(name: str):
     """A script of ``benchmarks/`` as a module (loaded from its file: torchrl installs a package called
     ``benchmarks``, so ``import benchmarks.x`` would find that one)."""
