@@ -9,6 +9,7 @@ import argparse
 import importlib
 import os
 import sys
+from pathlib import Path
 
 #: Modules whose ``register(subparsers)`` adds sub-commands, in the order --help lists them.
 COMMAND_MODULES = [
@@ -26,6 +27,25 @@ COMMAND_MODULES = [
 
 class CLIError(Exception):
     """A user error: printed as ``iarcs: error: <message>`` with exit status 2."""
+
+
+#: argparse destinations naming files a command reads (and their flags): ``--out`` may be none of them.
+INPUTS = {"src": "--in", "scenes": "--scenes", "floors": "--floors", "reference": "--reference",
+          "program": "--program", "checkpoint": "--checkpoint", "base": "--base", "run": "--run"}
+
+
+def check_out_is_not_an_input(args: argparse.Namespace) -> None:
+    """Refuse ``--out`` naming a file the command reads: it would be overwritten before (or while) it is read."""
+    out = getattr(args, "out", None)
+    if not isinstance(out, str) or not out:
+        return
+    target = Path(out).expanduser().resolve()
+    for dest, flag in INPUTS.items():
+        values = getattr(args, dest, None)
+        for value in values if isinstance(values, list) else [values]:
+            if isinstance(value, str) and value and Path(value).expanduser().resolve() == target:
+                raise CLIError(f"--out {out} is also the {flag} input: writing it would destroy what the command "
+                               "reads; choose another output path")
 
 
 def add_device_option(parser: argparse.ArgumentParser, what: str) -> None:
@@ -60,6 +80,7 @@ def main(argv: list[str] | None = None) -> int:
         if args.command not in ("train", "pretrain") and int(os.environ.get("WORLD_SIZE", "1")) > 1:
             raise CLIError(f"iarcs {args.command} runs in one process; only `iarcs train` and `iarcs pretrain` run "
                            "data-parallel under torchrun (agents/distributed.py)")
+        check_out_is_not_an_input(args)
         result = args.func(args)
     except user_errors() as err:
         print(f"iarcs: error: {err}", file=sys.stderr)
