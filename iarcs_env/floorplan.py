@@ -14,6 +14,11 @@ class FloorPlanError(ValueError):
     """A floor polygon that cannot be used: the message says what is wrong and how to fix it."""
 
 
+#: Physical bounds of what is read as a room (metres): coordinates, and an object's full size along any axis.
+MAX_COORDINATE = 1000.0
+MAX_SIZE = 50.0
+
+
 def _clean_vertices(vertices) -> np.ndarray:
     try:
         v = np.asarray(vertices, dtype=np.float64)
@@ -26,6 +31,10 @@ def _clean_vertices(vertices) -> np.ndarray:
     if not np.all(np.isfinite(v)):
         bad = int(np.argwhere(~np.isfinite(v).all(1))[0, 0])
         raise FloorPlanError(f"floor polygon vertex {bad} is not a finite number: {v[bad].tolist()}")
+    if np.abs(v).max(initial=0.0) > MAX_COORDINATE:
+        bad = int(np.argwhere((np.abs(v) > MAX_COORDINATE).any(1))[0, 0])
+        raise FloorPlanError(f"floor polygon vertex {bad} is {v[bad].tolist()}, more than {MAX_COORDINATE:g} m from the "
+                             "origin: coordinates are metres")
     if len(v) > 1 and np.allclose(v[0], v[-1]):
         v = v[:-1]  # a closing vertex repeating the first one
     # drop consecutive duplicates

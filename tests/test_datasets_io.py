@@ -94,9 +94,25 @@ GOOD_SCENE = {"id": "s", "room_type": "bedroom", "floor": [[0, 0], [3, 0], [3, 3
     ({**GOOD_SCENE, "room_type": "garage"}, "unknown room type"),
     ({**GOOD_SCENE, "objects": [{**GOOD_OBJECT, "label": "piano"}]}, "unknown bedroom class 'piano'"),
     ({**GOOD_SCENE, "objects": [{k: v for k, v in GOOD_OBJECT.items() if k != "yaw"}]}, "missing field.*yaw"),
-    ({**GOOD_SCENE, "objects": [{**GOOD_OBJECT, "half_size": [0.2, -1, 0.2]}]}, "must not be negative"),
+    ({**GOOD_SCENE, "objects": [{**GOOD_OBJECT, "half_size": [0.2, -1, 0.2]}]}, "half_size .* must be >= 0"),
     ({**GOOD_SCENE, "objects": [{**GOOD_OBJECT, "center": [1, 2]}]}, "3 numbers"),
-    ({**GOOD_SCENE, "objects": [{**GOOD_OBJECT, "yaw": "north"}]}, "could not convert"),
+    ({**GOOD_SCENE, "objects": [{**GOOD_OBJECT, "yaw": "north"}]}, "yaw must hold numbers only"),
+    # numbers that are not data (issue 42): each refused, naming the scene, the object and the field
+    ({**GOOD_SCENE, "objects": [{**GOOD_OBJECT, "center": "123"}]}, r"object 0 \('nightstand'\): center must be a list"),
+    ({**GOOD_SCENE, "objects": [{**GOOD_OBJECT, "center": [float("nan"), 0, 1]}]}, "center must be finite"),
+    ({**GOOD_SCENE, "objects": [{**GOOD_OBJECT, "center": [float("inf"), 0, 1]}]}, "center must be finite"),
+    ({**GOOD_SCENE, "objects": [{**GOOD_OBJECT, "center": [1e300, 0, 1]}]}, "more than 1000 m from the origin"),
+    ({**GOOD_SCENE, "objects": [{**GOOD_OBJECT, "half_size": [0.2, 1e300, 0.2]}]}, "at most 25 m"),
+    ({**GOOD_SCENE, "objects": [{**GOOD_OBJECT, "half_size": [0.2, float("nan"), 0.2]}]}, "half_size must be finite"),
+    ({**GOOD_SCENE, "objects": [{**GOOD_OBJECT, "yaw": float("nan")}]}, "yaw must be finite"),
+    ({**GOOD_SCENE, "objects": [{**GOOD_OBJECT, "yaw": 1e9}]}, "not an angle in radians"),
+    ({**GOOD_SCENE, "objects": [{**GOOD_OBJECT, "center": [True, 0, 1]}]}, "numbers only"),
+    ({**GOOD_SCENE, "objects": 5}, "'objects' must be a list"),
+    ({**GOOD_SCENE, "objects": [5]}, "object 0: an object must be a JSON object"),
+    ({**GOOD_SCENE, "ceiling_height": None}, "ceiling_height must be a number"),
+    ({**GOOD_SCENE, "ceiling_height": -2.6}, "ceiling_height must be a number"),
+    ({**GOOD_SCENE, "floor": [[0, 0], [1e200, 0], [0, 3]]}, "vertex 1 .* more than 1000 m"),
+    ({**GOOD_SCENE, "floor": [[0, 0], [float("nan"), 0], [0, 3]]}, "vertex 1 is not a finite number"),
 ])
 def test_malformed_json_scenes_raise_clear_errors(tmp_path, scene, message):
     with pytest.raises(DatasetFormatError, match=message) as err:

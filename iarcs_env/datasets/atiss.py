@@ -12,17 +12,18 @@ from __future__ import annotations
 
 import json
 import re
+import zipfile
 from pathlib import Path
 from typing import Sequence
 
 import numpy as np
 from PIL import Image
 
-from ..floorplan import FloorPlan, FloorPlanError
+from ..floorplan import MAX_SIZE, FloorPlan, FloorPlanError
 from ..rooms import get_room
 from ..scene import Layout
 from ..stats import ATISS_EXTRA_TOKENS, DatasetStats
-from .json_format import DatasetFormatError
+from .json_format import DatasetFormatError, check_geometry
 
 STATS_FILE = "dataset_stats.txt"
 BOXES_FILE = "boxes.npz"
@@ -104,6 +105,8 @@ def read_atiss_folder(root: str | Path, room_type: str | None = None) -> list[La
             raise DatasetFormatError(f"{f}: missing array '{name}' in boxes.npz") from None
         except (ValueError, FloorPlanError) as err:
             raise DatasetFormatError(f"{f}: {err}") from None
+        except (OSError, EOFError, zipfile.BadZipFile) as err:  # truncated, empty or not an archive
+            raise DatasetFormatError(f"{f}: not a readable .npz archive ({type(err).__name__}: {err})") from None
     return layouts
 
 
@@ -130,9 +133,20 @@ def _read_room(path: Path, vocab: list[str] | None, room_type: str | None) -> La
     for e, jid in zip(extras, jids):
         if str(jid):
             e["jid"] = str(jid)
+    centres, halves = d["translations"].astype(np.float64) + centroid, d["sizes"].astype(np.float64)
+    yaws = d["angles"].reshape(-1).astype(np.float64)
+    if not len(centres) == len(halves) == len(yaws) == len(labels) or centres.shape[1:] != (3,) or halves.shape[1:] != (3,):
+        raise ValueError(f"translations {centres.shape}, sizes {halves.shape}, angles {yaws.shape} and class_labels "
+                         f"{onehot.shape} do not describe the same objects")
+    for k in range(len(labels)):
+        try:
+            check_geometry(centres[k], halves[k], yaws[k])
+        except ValueError as err:
+            raise ValueError(f"object {k} ({labels[k]!r}): {err}") from None
+    if "ceiling_height" in d and not 0 < float(d["ceiling_height"]) <= MAX_SIZE:
+        raise ValueError(f"ceiling_height {float(d['ceiling_height'])} is not a height in metres in (0, {MAX_SIZE:g}]")
     return Layout(
-        spec.name, floor, labels, d["translations"].astype(np.float64) + centroid,
-        d["sizes"].astype(np.float64), d["angles"].reshape(-1).astype(np.float64),
+        spec.name, floor, labels, centres, halves, yaws,
         id=str(d["scene_id"]) if "scene_id" in d else path.parent.name,
         ceiling_height=float(d["ceiling_height"]) if "ceiling_height" in d else 2.6, extras=extras,
     )

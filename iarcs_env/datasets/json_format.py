@@ -7,10 +7,11 @@
 from __future__ import annotations
 
 import json
+import math
 from pathlib import Path
 from typing import Sequence
 
-from ..floorplan import FloorPlan, FloorPlanError
+from ..floorplan import MAX_COORDINATE, MAX_SIZE, FloorPlan, FloorPlanError
 from ..rooms import get_room
 from ..scene import Layout
 
@@ -20,6 +21,32 @@ _GEOMETRY_KEYS = ("label", "center", "half_size", "yaw")
 
 class DatasetFormatError(ValueError):
     """A data file that cannot be read: the message names the file, the scene and the field."""
+
+
+def _numbers(value, count: int, what: str) -> list[float]:
+    """``value`` as ``count`` finite numbers (a JSON list of numbers, nothing else), or a ValueError saying why."""
+    if not isinstance(value, (list, tuple)) or len(value) != count:
+        raise ValueError(f"{what} must be a list of {count} numbers, got {json.dumps(value)[:60]}")
+    if not all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in value):
+        raise ValueError(f"{what} must hold numbers only, got {json.dumps(value)[:60]}")
+    if not all(math.isfinite(v) for v in value):
+        raise ValueError(f"{what} must be finite numbers, got {value}")
+    return [float(v) for v in value]
+
+
+def check_geometry(centre, half_size, yaw) -> None:
+    """Refuse an object's numbers when not finite or beyond physical bounds (a ValueError naming the field)."""
+    for name, values in (("center", centre), ("half_size", half_size), ("yaw", [yaw])):
+        if not all(math.isfinite(v) for v in values):
+            raise ValueError(f"{name} must be finite numbers, got {[float(v) for v in values]}")
+    if max(abs(v) for v in centre) > MAX_COORDINATE:
+        raise ValueError(f"center {[float(v) for v in centre]} is more than {MAX_COORDINATE:g} m from the origin "
+                         "(coordinates are metres)")
+    if min(half_size) < 0 or 2 * max(half_size) > MAX_SIZE:
+        raise ValueError(f"half_size {[float(v) for v in half_size]} must be >= 0 and at most {MAX_SIZE / 2:g} m "
+                         f"(objects up to {MAX_SIZE:g} m)")
+    if abs(yaw) > 100:
+        raise ValueError(f"yaw {float(yaw)} is not an angle in radians")
 
 
 def layout_from_json(scene: dict, where: str = "", room_type: str | None = None) -> Layout:
@@ -39,29 +66,34 @@ def layout_from_json(scene: dict, where: str = "", room_type: str | None = None)
         floor = FloorPlan.from_vertices(scene["floor"])
     except (ValueError, FloorPlanError) as err:
         raise DatasetFormatError(f"{here}: {err}") from None
+    if not isinstance(scene["objects"], list):
+        raise DatasetFormatError(f"{here}: 'objects' must be a list of objects, got {json.dumps(scene['objects'])[:60]}")
+    height = scene.get("ceiling_height", 2.6)
+    if not isinstance(height, (int, float)) or isinstance(height, bool) or not 0 < height <= MAX_SIZE:
+        raise DatasetFormatError(f"{here}: ceiling_height must be a number of metres in (0, {MAX_SIZE:g}], got "
+                                 f"{json.dumps(height)}")
     labels, centres, halves, yaws, extras = [], [], [], [], []
     for k, obj in enumerate(scene["objects"]):
+        if not isinstance(obj, dict):
+            raise DatasetFormatError(f"{here} object {k}: an object must be a JSON object, got {json.dumps(obj)[:60]}")
         missing = [f for f in _GEOMETRY_KEYS if f not in obj]
         if missing:
             raise DatasetFormatError(f"{here} object {k}: missing field(s) {', '.join(missing)}")
         try:
             spec.class_index(obj["label"])
-            c = [float(v) for v in obj["center"]]
-            h = [float(v) for v in obj["half_size"]]
-            y = float(obj["yaw"])
+            c = _numbers(obj["center"], 3, "center")
+            h = _numbers(obj["half_size"], 3, "half_size")
+            (y,) = _numbers([obj["yaw"]], 1, "yaw")
+            check_geometry(c, h, y)
         except (TypeError, ValueError) as err:
-            raise DatasetFormatError(f"{here} object {k}: {err}") from None
-        if len(c) != 3 or len(h) != 3:
-            raise DatasetFormatError(f"{here} object {k}: center and half_size need 3 numbers each")
-        if min(h) < 0:
-            raise DatasetFormatError(f"{here} object {k}: half_size must not be negative, got {h}")
+            raise DatasetFormatError(f"{here} object {k} ({obj.get('label')!r}): {err}") from None
         labels.append(obj["label"])
         centres.append(c)
         halves.append(h)
         yaws.append(y)
         extras.append({key: v for key, v in obj.items() if key not in _GEOMETRY_KEYS})
     return Layout(spec.name, floor, labels, centres, halves, yaws, id=str(sid),
-                  ceiling_height=float(scene.get("ceiling_height", 2.6)), extras=extras)
+                  ceiling_height=float(height), extras=extras)
 
 
 def layout_to_json(layout: Layout, digits: int = 6) -> dict:
