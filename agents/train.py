@@ -100,6 +100,12 @@ class TrainConfig:
 
     def __post_init__(self):
         check_device(self.device)
+        for name in ("num_envs", "num_steps", "num_floors", "eval_floors", "epochs", "eval_every", "checkpoint_every"):
+            value = getattr(self, name)
+            if not isinstance(value, int) or isinstance(value, bool) or value < 1:
+                raise ValueError(f"{name} must be a positive whole number, got {value!r}")
+        if not isinstance(self.eta, (int, float)) or not 0 <= self.eta <= 1:
+            raise ValueError(f"eta must be a number in [0, 1] (0: deterministic DDIM, 1: DDPM-like), got {self.eta!r}")
 
 
 def load_train_config(path, **overrides) -> TrainConfig:

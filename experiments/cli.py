@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import math
 import os
 import sys
 from pathlib import Path
@@ -46,6 +47,17 @@ def check_out_is_not_an_input(args: argparse.Namespace) -> None:
             if isinstance(value, str) and value and Path(value).expanduser().resolve() == target:
                 raise CLIError(f"--out {out} is also the {flag} input: writing it would destroy what the command "
                                "reads; choose another output path")
+
+
+def finite_float(text: str) -> float:
+    """argparse ``type`` of a float flag: a finite number (``nan`` or ``inf`` would run and write NaN results)."""
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
+    if not math.isfinite(value):
+        raise argparse.ArgumentTypeError(f"expected a finite number, got {text!r}")
+    return value
 
 
 def add_device_option(parser: argparse.ArgumentParser, what: str) -> None:

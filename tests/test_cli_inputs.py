@@ -1,13 +1,17 @@
-"""Bad input to the command line never damages input files (issue 42): an ``--out`` that names an input is refused
-with a message naming both flags, exit status 2, and the input left byte for byte as it was."""
+"""Bad input to the command line (issue 42): an ``--out`` that names an input is refused with a message naming both
+flags, exit status 2, and the input left byte for byte as it was; flags and configs whose numbers would run and
+write nonsense are refused before anything runs; values the sandbox clips are counted, not silently changed."""
 
 from __future__ import annotations
 
 import hashlib
+from pathlib import Path
 
 import pytest
 
 from experiments.cli import main
+
+REPO = Path(__file__).resolve().parents[1]
 
 PROGRAM = "def reward(scene):\n    return scene.count('bed').float()\n"
 
@@ -36,3 +40,36 @@ def test_an_output_that_is_an_input_is_refused(inputs, capsys, argv, flag):
     err = capsys.readouterr().err
     assert f"is also the {flag} input" in err and "choose another output path" in err, err
     assert before == {k: hashlib.sha256(p.read_bytes()).hexdigest() for k, p in inputs.items()}
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["sample", "--eta", "nan", "--num-scenes", "2", "--out", "{root}/s.json"], "--eta: expected a finite number"),
+    (["sample", "--guidance", "inf", "--num-scenes", "2", "--out", "{root}/s.json"], "--guidance: expected a finite"),
+    (["evaluate", "--scenes", "{scenes}", "--cell=-inf", "--out", "{root}/e.json"], "--cell: expected a finite number"),
+    (["data", "generate", "--room", "bedroom", "--flaw-rate", "NaN", "--out", "{root}/g.json"], "--flaw-rate"),
+])
+def test_flags_that_are_not_finite_numbers_are_refused(inputs, capsys, argv, message):
+    argv = [a.format(root=inputs["scenes"].parent, **inputs) for a in argv]
+    with pytest.raises(SystemExit) as exit_:
+        main(argv)
+    assert exit_.value.code == 2 and message in capsys.readouterr().err
+    assert not (inputs["scenes"].parent / "s.json").exists() and not (inputs["scenes"].parent / "g.json").exists()
+
+
+@pytest.mark.parametrize("setting, message", [("epochs: -5", "epochs must be a positive whole number, got -5"),
+                                              ("eval_every: 0", "eval_every must be a positive whole number"),
+                                              ("eta: .nan", "eta must be a number in [0, 1]")])
+def test_a_training_config_that_would_do_nothing_is_refused(tmp_path, capsys, setting, message):
+    config = tmp_path / "run.yaml"
+    config.write_text((REPO / "experiments" / "stage1_bedroom_quick.yaml").read_text() + f"\n{setting}\n")
+    assert main(["train", "--config", str(config), "--out", str(tmp_path / "run")]) == 2
+    assert message in capsys.readouterr().err
+    assert not (tmp_path / "run").exists()
+
+
+def test_scores_clipped_by_the_sandbox_are_counted(inputs, tmp_path, capsys):
+    program = tmp_path / "big.py"
+    program.write_text("def reward(scene):\n    return torch.full((scene.batch_size,), 10000.0)\n")
+    out = tmp_path / "scores.json"
+    assert main(["reward", "score", "--program", str(program), "--scenes", str(inputs["scenes"]), "--out", str(out)]) == 0
+    assert "3 values beyond +-10 clipped to it" in capsys.readouterr().out

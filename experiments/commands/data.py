@@ -9,6 +9,7 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
+from experiments.cli import finite_float
 from iarcs_env.datasets import is_atiss_folder, load_layouts, save_layouts
 from iarcs_env.render import image_grid, render_layout, save_image
 from iarcs_env.rooms import get_room
@@ -23,7 +24,7 @@ def register(sub) -> None:
     p.add_argument("--room", required=True, help="bedroom, livingroom or diningroom")
     p.add_argument("--num-scenes", type=int, default=500)
     p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--flaw-rate", type=float, default=1.0,
+    p.add_argument("--flaw-rate", type=finite_float, default=1.0,
                    help="0: no deliberate collisions or wall crossings; 1: flaw rates like real 3D-FRONT")
     p.add_argument("--out", required=True, help="output .json (or a folder for ATISS format)")
     p.set_defaults(func=cmd_generate)

@@ -25,6 +25,8 @@ import re
 import sys
 from pathlib import Path
 
+from experiments.cli import finite_float
+
 HEADLINE_HELP = "Col_obj, Col_scene, R_out, R_reach, R_walkable"
 
 
@@ -44,8 +46,8 @@ def register(sub) -> None:
                         "reach_1m, tv_from_bed, study_zone, two_nightstands, wheelchair")
     p.add_argument("--room", help="evaluate only this room type (when the file mixes several)")
     p.add_argument("--name", help="row name in the Markdown table (default: the scenes file name)")
-    p.add_argument("--cell", type=float, default=0.05, help="walkable grid cell in metres (default 0.05)")
-    p.add_argument("--agent-radius", type=float, default=0.3, help="agent radius in metres (default 0.3)")
+    p.add_argument("--cell", type=finite_float, default=0.05, help="walkable grid cell in metres (default 0.05)")
+    p.add_argument("--agent-radius", type=finite_float, default=0.3, help="agent radius in metres (default 0.3)")
     p.add_argument("--render-size", type=int, default=64, help="render size for FID/KID/SCA (default 64)")
     p.add_argument("--seed", type=int, default=0, help="seed of the feature CNN and the SCA classifier")
     p.set_defaults(func=cmd_evaluate)

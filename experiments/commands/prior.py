@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from experiments.cli import add_device_option
+from experiments.cli import add_device_option, finite_float
 
 
 def register(sub) -> None:
@@ -20,7 +20,7 @@ def register(sub) -> None:
     p.add_argument("--stop-at", type=int, default=None,
                    help="stop at this global step as if interrupted there, keeping the config's learning-rate "
                         "schedule; the run resumes later from it (default: run to --steps)")
-    p.add_argument("--time-budget", type=float, default=None, metavar="MINUTES",
+    p.add_argument("--time-budget", type=finite_float, default=None, metavar="MINUTES",
                    help="stop cleanly when this many minutes have passed (a checkpoint and prior.pt written, the "
                         "run resumable); pair it with 'lr_schedule: constant' (default: no limit)")
     p.add_argument("--continue-from", nargs="?", const="default", default=None, metavar="PRIOR",
@@ -45,8 +45,8 @@ def register(sub) -> None:
     p.add_argument("--floors", default=None,
                    help="layout file whose floor plans to use, room for room (default: procedural floors)")
     p.add_argument("--steps", type=int, default=20, help="DDIM steps (default 20)")
-    p.add_argument("--eta", type=float, default=1.0, help="DDIM eta: 0 deterministic, 1 DDPM-like (default 1)")
-    p.add_argument("--guidance", type=float, default=1.0, help="classifier-free guidance scale (default 1: none)")
+    p.add_argument("--eta", type=finite_float, default=1.0, help="DDIM eta: 0 deterministic, 1 DDPM-like (default 1)")
+    p.add_argument("--guidance", type=finite_float, default=1.0, help="classifier-free guidance scale (default 1: none)")
     p.add_argument("--batch-size", type=int, default=256, help="scenes per sampling batch (default 256)")
     p.add_argument("--satisfying", default=None, metavar="TASK",
                    help="keep only scenes passing this paper task's checker (reach_1m, tv_from_bed, study_zone, "

@@ -6,6 +6,8 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+from experiments.cli import finite_float
+
 
 def add_agent_options(p) -> None:
     """The options that choose the reward-synthesis agent (shared with ``iarcs generate``)."""
@@ -13,7 +15,7 @@ def add_agent_options(p) -> None:
                    help="litellm model, e.g. gemini/gemini-2.5-pro, openai/NAME (with --api-base), ollama/NAME; "
                         "default: the offline planner (no network)")
     p.add_argument("--api-base", default=None, help="server URL for openai-compatible or ollama models")
-    p.add_argument("--timeout", type=float, default=120.0, help="seconds per LLM request (default 120)")
+    p.add_argument("--timeout", type=finite_float, default=120.0, help="seconds per LLM request (default 120)")
 
 
 def register(sub) -> None:
@@ -34,7 +36,7 @@ def register(sub) -> None:
     s.add_argument("--out", required=True, help="scores .json: a list of numbers in scene order")
     s.add_argument("--room", default=None, help="room type (default: the file's)")
     s.add_argument("--batch-size", type=int, default=64, help="scenes per sandbox batch (default 64)")
-    s.add_argument("--timeout", type=float, default=60.0, help="deadline per batch, seconds (default 60)")
+    s.add_argument("--timeout", type=finite_float, default=60.0, help="deadline per batch, seconds (default 60)")
     s.set_defaults(func=cmd_score)
 
 
@@ -83,7 +85,8 @@ def cmd_synthesize(args) -> int:
 
 
 def score_layouts(code: str, layouts, batch_size: int = 64, timeout: float = 60.0, progress: bool = True):
-    """The program's reward for every layout, in order (NaN/inf clamped by the sandbox and counted)."""
+    """The program's reward for every layout, in order, and how many values the sandbox replaced: (values,
+    NaN/inf, finite values beyond its clamp bound)."""
     import numpy as np
     from tqdm import tqdm
 
@@ -91,7 +94,7 @@ def score_layouts(code: str, layouts, batch_size: int = 64, timeout: float = 60.
     from rewards.sandbox import RewardSandbox
 
     room = layouts[0].room_type
-    values, nonfinite = [], 0
+    values, nonfinite, clipped = [], 0, 0
     with RewardSandbox(room=room, timeout=timeout) as sandbox:
         loaded = sandbox.load(code)
         if not loaded.ok:
@@ -103,12 +106,14 @@ def score_layouts(code: str, layouts, batch_size: int = 64, timeout: float = 60.
                 raise ValueError(f"scenes {start}..{start + len(part) - 1}: {result.message}")
             values.extend(float(v) for v in result.values)
             nonfinite += result.nonfinite
-    return np.asarray(values), nonfinite
+            clipped += result.clipped
+    return np.asarray(values), nonfinite, clipped
 
 
 def cmd_score(args) -> int:
     from experiments.cli import CLIError
     from experiments.commands.evaluate import _load
+    from rewards.sandbox import DEFAULT_CLAMP
 
     program = Path(args.program)
     if not program.exists():
@@ -116,10 +121,11 @@ def cmd_score(args) -> int:
     if args.batch_size < 1:
         raise CLIError(f"--batch-size must be positive, got {args.batch_size}")
     layouts = _load(args.scenes, args.room, "--scenes")
-    values, nonfinite = score_layouts(program.read_text(), layouts, args.batch_size, args.timeout)
+    values, nonfinite, clipped = score_layouts(program.read_text(), layouts, args.batch_size, args.timeout)
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(json.dumps([round(v, 6) for v in values.tolist()]))
     print(f"{len(values)} scenes: mean {values.mean():.4f}, min {values.min():.4f}, max {values.max():.4f}"
-          + (f"; {nonfinite} NaN/inf values clamped" if nonfinite else "") + f" -> {out}")
+          + (f"; {nonfinite} NaN/inf values replaced" if nonfinite else "")
+          + (f"; {clipped} values beyond +-{DEFAULT_CLAMP:g} clipped to it" if clipped else "") + f" -> {out}")
     return 0
