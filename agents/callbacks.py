@@ -11,6 +11,8 @@ from typing import TYPE_CHECKING, Sequence
 import numpy as np
 import torch
 
+from .config import read_jsonl
+
 if TYPE_CHECKING:
     from .ddpo import DDPO
 
@@ -252,7 +254,7 @@ class EvalCallback(BaseCallback):
     def _logged(self) -> list[dict]:
         if not (self.log_path and self.log_path.exists()):
             return []
-        return [json.loads(line) for line in self.log_path.read_text().splitlines() if line.strip()]
+        return read_jsonl(self.log_path, warn=lambda message: print(message, file=sys.stderr))
 
     def _within_tolerance(self, metrics: dict) -> bool:
         over = [f"{name} {worsening(metrics, self.start, name):+.3g} (allowed {amount:g})"

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import dataclasses
 import difflib
+import json
 from pathlib import Path
 from typing import Any, TypeVar
 
@@ -53,6 +54,21 @@ def load_yaml_config(cls: type[T], path: str | Path, **overrides) -> T:
 
 
 DEVICE_CHOICES = "auto, cpu, cuda or cuda:N"
+
+
+def read_jsonl(path: str | Path, warn=print) -> list[dict]:
+    """The rows of a JSON-lines log. A torn last line (the run stopped while writing it) is dropped with a warning
+    through ``warn``; a bad line before the last is a ValueError naming the file and the line."""
+    lines = [(n, line) for n, line in enumerate(Path(path).read_text().splitlines(), 1) if line.strip()]
+    rows = []
+    for k, (n, line) in enumerate(lines):
+        try:
+            rows.append(json.loads(line))
+        except json.JSONDecodeError as err:
+            if k < len(lines) - 1:
+                raise ValueError(f"{path} line {n} is not JSON ({err}); fix or remove that line") from None
+            warn(f"warning: dropped the torn last line {n} of {path} (the run stopped while writing it)")
+    return rows
 
 
 def check_device(name: str) -> str:

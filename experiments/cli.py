@@ -97,6 +97,13 @@ def main(argv: list[str] | None = None) -> int:
     except user_errors() as err:
         print(f"iarcs: error: {err}", file=sys.stderr)
         return 2
+    except OSError as err:  # a folder that cannot be written, a path under a file, a full disk: one line, the path
+        if isinstance(err, (FileExistsError, NotADirectoryError)) and err.filename and Path(err.filename).is_file():
+            message = f"{err.filename} is a file, not a folder: choose an output path that is not under it"
+        else:
+            message = f"{err.strerror or err}: {err.filename}" if err.filename else str(err)
+        print(f"iarcs: error: {message}", file=sys.stderr)
+        return 1
     except KeyboardInterrupt:
         print("iarcs: interrupted", file=sys.stderr)
         return 130

@@ -299,15 +299,10 @@ def command_of(work: Path, step: str) -> str | None:
 
 
 def metrics_rows(work: Path) -> list[dict]:
-    rows = []
+    from agents.config import read_jsonl
+
     path = work / "run" / "metrics.jsonl"
-    if path.exists():
-        for line in path.read_text().splitlines():
-            try:
-                rows.append(json.loads(line))
-            except ValueError:
-                pass
-    return rows
+    return read_jsonl(path, warn=lambda message: None) if path.exists() else []
 
 
 def run_config(work: Path) -> dict:

@@ -73,3 +73,23 @@ def test_scores_clipped_by_the_sandbox_are_counted(inputs, tmp_path, capsys):
     out = tmp_path / "scores.json"
     assert main(["reward", "score", "--program", str(program), "--scenes", str(inputs["scenes"]), "--out", str(out)]) == 0
     assert "3 values beyond +-10 clipped to it" in capsys.readouterr().out
+
+
+def test_an_output_under_a_file_is_a_one_line_error(inputs, capsys):
+    out = inputs["program"] / "scenes.json"  # under a file
+    assert main(["data", "generate", "--room", "bedroom", "--num-scenes", "2", "--out", str(out)]) == 1
+    err = capsys.readouterr().err.strip().splitlines()[-1]
+    assert err == f"iarcs: error: {inputs['program']} is a file, not a folder: choose an output path that is not under it"
+
+
+def test_a_torn_last_line_of_a_log_is_dropped_with_a_warning(tmp_path):
+    from agents.config import read_jsonl
+
+    log = tmp_path / "eval.jsonl"
+    log.write_text('{"epoch": 1, "success": 0.5}\n{"epoch": 2, "succ')
+    warnings = []
+    assert read_jsonl(log, warn=warnings.append) == [{"epoch": 1, "success": 0.5}]
+    assert "torn last line 2" in warnings[0] and str(log) in warnings[0]
+    log.write_text('{"epoch": 1}\n{"epo\n{"epoch": 3}\n')
+    with pytest.raises(ValueError, match=r"eval.jsonl line 2 is not JSON"):
+        read_jsonl(log)
