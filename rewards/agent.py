@@ -18,6 +18,7 @@ import base64
 import json
 import math
 import re
+import time
 from dataclasses import dataclass
 
 from .llm import LLMClient, LLMConfig, LLMError
@@ -301,8 +302,9 @@ class LLMRewardAgent:
             self._system = build_system_prompt()
         messages = [{"role": "system", "content": self._system}] + messages
         attempts: list[Attempt] = []
+        deadline = time.monotonic() + self.client.config.max_seconds
         for _ in range(self.max_attempts):
-            reply = self.client.complete(messages)
+            reply = self.client.complete(messages, deadline=deadline)
             parsed = parse_answer(reply.text)
             problem = self._validate(room, parsed)
             attempts.append(Attempt(reply.text, problem))
@@ -314,8 +316,8 @@ class LLMRewardAgent:
                                             f"in the full format (REASONING, DECOMPOSITION, NOT UNDERSTOOD, "
                                             f"CODE, WEIGHT{', NOTES, CURRICULUM' if base else ''})."},
             ]
-        summary = "\n".join(f"  attempt {k}: {a.problem.splitlines()[0].lstrip('- ')}"
-                            for k, a in enumerate(attempts, 1))
+        summary = "\n".join(f"  attempt {k}: " + "\n    ".join(line.lstrip("- ") for line in a.problem.splitlines()[:4])
+                            for k, a in enumerate(attempts, 1))  # (the reason, not only its headline)
         raise RewardSynthesisError(
             f"{self.client.model} gave no valid reward program for {constraint!r} in {len(attempts)} attempt(s):\n"
             f"{summary}\nThe last answer and every problem are in .attempts; try another model, raise "

@@ -109,6 +109,8 @@ class LLMConfig:
     """Name of the environment variable holding the key (default: the provider's, e.g. ``GEMINI_API_KEY``)."""
     timeout: float = 120.0
     """Seconds to wait for one answer."""
+    max_seconds: float = 240.0
+    """Longest one synthesis or reflection may take: every request, retry and back-off included."""
     max_retries: int = 4
     """Retries after the first try, for rate limits, server errors and timeouts."""
     backoff_base: float = 2.0
@@ -251,8 +253,9 @@ class LLMClient:
 
     # -- the call
 
-    def complete(self, messages: list[dict]) -> LLMReply:
+    def complete(self, messages: list[dict], deadline: float | None = None) -> LLMReply:
         """The model's answer to a chat (OpenAI message format); cached answers are returned at no cost.
+        ``deadline`` (``time.monotonic()``) bounds every request and retry.
 
         Raises an :class:`LLMError` subclass when no answer could be had."""
         key = self.cache_key(messages)
@@ -262,7 +265,7 @@ class LLMClient:
             self.usage.cache_hits += 1
             return LLMReply(hit["text"], 0, 0, 0.0, True, hit.get("model", self.config.model), attempts=0)
         try:
-            reply = self._call_with_retries(messages)
+            reply = self._call_with_retries(messages, deadline)
         except LLMError:
             self.usage.errors += 1
             raise
@@ -321,13 +324,18 @@ class LLMClient:
                              f"config; for a self-hosted OpenAI-compatible server use model openai/<name> "
                              f"with api_base")
 
-    def _call_with_retries(self, messages: list[dict]) -> LLMReply:
+    def _call_with_retries(self, messages: list[dict], deadline: float | None = None) -> LLMReply:
         litellm = load_litellm()
         kwargs = self._request_kwargs(messages)
         cfg = self.config
         attempt = 0
         while True:
             attempt += 1
+            if deadline is not None:
+                left = deadline - time.monotonic()
+                if left <= 0:
+                    raise self._out_of_time(attempt - 1)
+                kwargs["timeout"] = min(cfg.timeout, left)
             self.usage.requests += 1
             try:
                 response = litellm.completion(**kwargs)
@@ -337,6 +345,8 @@ class LLMClient:
                     raise self._error(error_cls, exc, attempt) from exc
                 delay = min(cfg.backoff_max, cfg.backoff_base * 2 ** (attempt - 1)) * random.uniform(0.8, 1.0)
                 delay = max(delay, min(cfg.backoff_max, _retry_after(exc)))
+                if deadline is not None and time.monotonic() + delay >= deadline:
+                    raise self._out_of_time(attempt) from exc
                 log.warning("LLM call to %s failed (%s: %s); retry %d/%d in %.2f s", cfg.model,
                             type(exc).__name__, _short(exc), attempt, cfg.max_retries, delay)
                 self.usage.retries += 1
@@ -344,6 +354,13 @@ class LLMClient:
                 time.sleep(delay)
                 continue
             return self._reply(response, attempt)
+
+    def _out_of_time(self, requests: int) -> "LLMTimeoutError":
+        cfg = self.config
+        where = f" at {cfg.api_base}" if cfg.api_base else ""
+        return LLMTimeoutError(f"{cfg.model}{where} gave no usable answer within max_seconds = {cfg.max_seconds:g} s "
+                               f"({requests} request(s), retries and back-offs included); check the server, or raise "
+                               "max_seconds in the llm config (--max-seconds)")
 
     def _reply(self, response, attempts: int) -> LLMReply:
         choice = response.choices[0]

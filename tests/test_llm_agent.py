@@ -259,6 +259,25 @@ def test_timeout_gives_up(server):
         client.complete([{"role": "user", "content": "hi"}])
 
 
+def test_a_hanging_server_costs_at_most_max_seconds(server, sandbox):
+    """A server that never answers in time: the whole synthesis (every attempt, retry and back-off) stops at
+    max_seconds with a message naming the server and the setting, instead of timeout x retries x attempts."""
+    server.push({"content": "warm"}, *[{"sleep": 3.0, "content": "late"}] * 12)
+    agent = make(server, sandbox, max_attempts=3, timeout=2.0, max_retries=4, max_seconds=2.5)
+    agent.client.complete([{"role": "user", "content": "warm up"}])  # (litellm's one-off start is not the server's)
+    t0 = time.monotonic()
+    with pytest.raises(LLMTimeoutError, match=r"no usable answer within max_seconds = 2.5 s .*--max-seconds"):
+        agent.synthesize("bedroom", "A bedroom with a desk")
+    assert time.monotonic() - t0 < 4.0  # (without the limit: 3 attempts x 5 requests x 2 s = 30 s)
+
+
+def test_the_reason_a_program_was_rejected_is_shown(server, sandbox):
+    server.push(*[{"fixture": "forbidden_import"}] * 2)
+    with pytest.raises(RewardSynthesisError) as err:
+        make(server, sandbox, max_attempts=2).synthesize("bedroom", recorded("reach_1m")["constraint"])
+    assert str(err.value).count("`import os` is not allowed") == 2  # each attempt's reason, not only "failed"
+
+
 def test_connection_refused_names_api_base():
     with socket.socket() as s:  # a port that nothing listens on
         s.bind(("127.0.0.1", 0))

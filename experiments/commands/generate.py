@@ -77,7 +77,7 @@ def train_adapter(args, room: str, task: str | None, run_dir: Path) -> Path:
 
     agent = {"model": args.model or "", "api_base": args.api_base or ""}
     if args.model:
-        agent["llm"] = {"timeout": args.timeout}
+        agent["llm"] = {"timeout": args.timeout, "max_seconds": args.max_seconds}
     cfg = load_train_config(TEMPLATE, room=room, out=str(run_dir), epochs=args.epochs, adapter="task",
                             export="best" if task else "last", device=args.device,
                             task={"constraint": args.constraint, "checker": task or "", "reflect_every": 10, **agent})

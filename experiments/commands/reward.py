@@ -16,6 +16,8 @@ def add_agent_options(p) -> None:
                         "default: the offline planner (no network)")
     p.add_argument("--api-base", default=None, help="server URL for openai-compatible or ollama models")
     p.add_argument("--timeout", type=finite_float, default=120.0, help="seconds per LLM request (default 120)")
+    p.add_argument("--max-seconds", type=finite_float, default=240.0,
+                   help="longest one synthesis or reflection may take, retries included (default 240)")
 
 
 def register(sub) -> None:
@@ -41,7 +43,7 @@ def register(sub) -> None:
 
 
 def synthesize(room: str, constraint: str, model: str | None = None, api_base: str | None = None,
-               timeout: float = 120.0, log=print):
+               timeout: float = 120.0, max_seconds: float = 240.0, log=print):
     """A sandbox-checked proposal from the configured agent (an LLM or the offline planner)."""
     from agents.stage2 import synthesize_checked
     from iarcs_env.rooms import get_room
@@ -52,7 +54,7 @@ def synthesize(room: str, constraint: str, model: str | None = None, api_base: s
     if not constraint.strip():
         raise ValueError("--constraint is empty; describe the scene you want, e.g. "
                          '"A bedroom with 2 night tables on either side of the bed"')
-    llm = {"timeout": timeout} if model else {}
+    llm = {"timeout": timeout, "max_seconds": max_seconds} if model else {}
     with RewardSandbox(room=room) as sandbox:
         agent = make_agent(model, api_base=api_base, sandbox=sandbox, **llm)
         log(f"writing a reward program with {'the offline planner' if not model else model} ...")
@@ -75,7 +77,7 @@ def write_proposal(proposal, path: Path) -> tuple[Path, Path]:
 
 
 def cmd_synthesize(args) -> int:
-    proposal = synthesize(args.room, args.constraint, args.model, args.api_base, args.timeout)
+    proposal = synthesize(args.room, args.constraint, args.model, args.api_base, args.timeout, args.max_seconds)
     program, meta = write_proposal(proposal, Path(args.out))
     print("decomposition:\n" + "\n".join(f"  - {d}" for d in proposal.decomposition))
     if proposal.not_understood:
