@@ -251,6 +251,14 @@ class EvalCallback(BaseCallback):
                 self.warned_furniture = True
         return metrics
 
+    def forget_after(self, epoch: int) -> None:
+        """Drop logged evaluations of epochs after ``epoch``: a run resumed from that checkpoint redoes them."""
+        if self.log_path and self.log_path.exists():
+            kept = [row for row in self._logged() if row.get("epoch", 0) <= epoch]
+            tmp = self.log_path.with_name(self.log_path.name + ".tmp")
+            tmp.write_text("".join(json.dumps(row) + "\n" for row in kept))
+            tmp.replace(self.log_path)
+
     def _logged(self) -> list[dict]:
         if not (self.log_path and self.log_path.exists()):
             return []

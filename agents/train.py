@@ -204,19 +204,23 @@ def run(cfg: TrainConfig, progress: bool = True, log=print):
     task = None
     if cfg.task:
         task = _share_task(cfg, _setup_task(cfg, out, resume, log) if main else None)
+    torch.manual_seed(cfg.seed)  # the adapter's initialisation does not depend on what ran before in the process
     algo, policy, env = build(cfg, tensorboard_log=out / "tb", **({} if task is None else task["build"]))
     if resume:
         algo = DDPO.load(ckpt, policy, env, tensorboard_log=out / "tb")
         log(f"resuming {out} at epoch {algo.epoch}")
     eval_floors = default_floors(cfg.room, count=cfg.eval_floors, seed=cfg.eval_seed)
-    callbacks = [CheckpointCallback(cfg.checkpoint_every, ckpt)]  # (DDPO runs callbacks on rank 0 only)
-    if task is not None and task["reflection"] is not None:
-        callbacks.append(task["reflection"])
+    # after each epoch, in this order: reflection, evaluation, then the checkpoint, so that a checkpoint holds
+    # everything its epoch did; what a killed run did after its last checkpoint is forgotten and redone
+    callbacks = [task["reflection"]] if task is not None and task["reflection"] is not None else []
     metrics = {} if task is None else task["metrics"]
     best_key = next(iter(metrics), "reward")  # the task's success rate, if it has a checker
-    callbacks.append(EvalCallback(eval_floors, eval_freq=cfg.eval_every, log_path=out / "eval.jsonl", verbose=1,
-                                  scene_metrics=metrics, best_path=out / BEST_DIR, best_key=best_key,
-                                  best_tolerance=cfg.best_tolerance))
+    evaluation = EvalCallback(eval_floors, eval_freq=cfg.eval_every, log_path=out / "eval.jsonl", verbose=1,
+                              scene_metrics=metrics, best_path=out / BEST_DIR, best_key=best_key,
+                              best_tolerance=cfg.best_tolerance)
+    if main:  # what a killed attempt logged after its last checkpoint (or without one) is redone
+        evaluation.forget_after(algo.epoch if resume else -1)
+    callbacks += [evaluation, CheckpointCallback(cfg.checkpoint_every, ckpt)]  # (DDPO runs them on rank 0 only)
     total = cfg.epochs * cfg.num_envs * cfg.num_steps * algo.config.num_batches_per_epoch
     try:
         algo.learn(total, callback=callbacks, progress_bar=progress)
