@@ -10,6 +10,7 @@ from pathlib import Path
 import pytest
 
 from experiments.cli import main
+from test_datasets_io import BAD_SCENES
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -93,3 +94,32 @@ def test_a_torn_last_line_of_a_log_is_dropped_with_a_warning(tmp_path):
     log.write_text('{"epoch": 1}\n{"epo\n{"epoch": 3}\n')
     with pytest.raises(ValueError, match=r"eval.jsonl line 2 is not JSON"):
         read_jsonl(log)
+
+
+#: Every command that reads layouts, with where the bad file goes ({bad}) and where it writes ({root}).
+READERS = [
+    ["evaluate", "--scenes", "{bad}", "--out", "{root}/r.json"],
+    ["reward", "score", "--program", "{program}", "--scenes", "{bad}", "--out", "{root}/r.json"],
+    ["sample", "--floors", "{bad}", "--out", "{root}/r.json"],
+    ["data", "stats", "--in", "{bad}"],
+    ["data", "render", "--in", "{bad}", "--out", "{root}/r"],
+    ["data", "convert", "--in", "{bad}", "--out", "{root}/r"],
+]
+
+
+@pytest.mark.parametrize("scene, message", BAD_SCENES, ids=[f"bad{k}" for k in range(len(BAD_SCENES))])
+@pytest.mark.parametrize("argv", READERS, ids=lambda argv: "_".join(argv[:2]))
+def test_no_command_takes_a_bad_scene_as_data(inputs, tmp_path, capsys, argv, scene, message):
+    """Each bad scene through each command: exit 2, one line naming the file, the scene and the problem, nothing
+    written, the input untouched."""
+    import json
+    import re
+
+    bad = tmp_path / "bad.json"
+    bad.write_text(json.dumps({"scenes": [scene]}))
+    before = bad.read_bytes()
+    argv = [a.format(bad=bad, root=tmp_path, **inputs) for a in argv]
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("iarcs: error: ") and "Traceback" not in err and str(bad) in err and re.search(message, err)
+    assert bad.read_bytes() == before and not (tmp_path / "r.json").exists() and not (tmp_path / "r").exists()

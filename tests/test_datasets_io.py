@@ -86,7 +86,8 @@ GOOD_OBJECT = {"label": "nightstand", "center": [1, 0.25, 1], "half_size": [0.2,
 GOOD_SCENE = {"id": "s", "room_type": "bedroom", "floor": [[0, 0], [3, 0], [3, 3], [0, 3]], "objects": [GOOD_OBJECT]}
 
 
-@pytest.mark.parametrize("scene, message", [
+#: Scenes that are not data, and what the error says (also fed to every command: tests/test_cli_inputs.py).
+BAD_SCENES = [
     ({**GOOD_SCENE, "floor": [[0, 0], [1, 1]]}, "at least 3"),
     ({**GOOD_SCENE, "floor": [[0, 0], [1, 1], [1, 0], [0, 1]]}, "not simple"),
     ({k: v for k, v in GOOD_SCENE.items() if k != "objects"}, "missing field 'objects'"),
@@ -113,7 +114,10 @@ GOOD_SCENE = {"id": "s", "room_type": "bedroom", "floor": [[0, 0], [3, 0], [3, 3
     ({**GOOD_SCENE, "ceiling_height": -2.6}, "ceiling_height must be a number"),
     ({**GOOD_SCENE, "floor": [[0, 0], [1e200, 0], [0, 3]]}, "vertex 1 .* more than 1000 m"),
     ({**GOOD_SCENE, "floor": [[0, 0], [float("nan"), 0], [0, 3]]}, "vertex 1 is not a finite number"),
-])
+]
+
+
+@pytest.mark.parametrize("scene, message", BAD_SCENES)
 def test_malformed_json_scenes_raise_clear_errors(tmp_path, scene, message):
     with pytest.raises(DatasetFormatError, match=message) as err:
         read_json_layouts(_write(tmp_path, [scene]))
@@ -148,3 +152,21 @@ def test_malformed_atiss_folders(tmp_path):
     np.savez(f, **d)
     with pytest.raises(DatasetFormatError, match="missing array 'translations'"):
         read_atiss_folder(tmp_path / "atiss")
+
+
+@pytest.mark.parametrize("damage, message", [
+    (lambda f, d: f.write_bytes(f.read_bytes()[:200]), "not a readable .npz archive"),  # truncated
+    (lambda f, d: f.write_bytes(b""), "not a readable .npz archive"),  # empty
+    (lambda f, d: np.savez(f, **{**d, "translations": d["translations"] * np.nan}), r"object 0 .*center must be finite"),
+    (lambda f, d: np.savez(f, **{**d, "sizes": d["sizes"] * 1e300}), r"half_size .* at most 25 m"),
+    (lambda f, d: np.savez(f, **{**d, "angles": d["angles"] + np.inf}), "yaw must be finite"),
+    (lambda f, d: np.savez(f, **{**d, "translations": d["translations"][:1]}), "do not describe the same objects"),
+    (lambda f, d: np.savez(f, **{**d, "ceiling_height": np.float64(-1)}), "ceiling_height -1.0 is not a height"),
+])
+def test_damaged_atiss_archives_are_one_clear_error(tmp_path, damage, message):
+    save_layouts(_layouts(), tmp_path / "atiss")
+    f = sorted((tmp_path / "atiss").glob("*/boxes.npz"))[0]
+    damage(f, dict(np.load(f)))
+    with pytest.raises(DatasetFormatError, match=message) as err:
+        read_atiss_folder(tmp_path / "atiss")
+    assert str(f) in str(err.value)
