@@ -49,6 +49,8 @@ class TaskConfig:
     """Weight of the task reward; 0: the weight the agent proposes."""
     sandbox_timeout: float = 30.0
     """Per-batch deadline of the reward program, seconds."""
+    allow_partial: bool = False
+    """Train on a program written without words that change the request's meaning (else the run refuses)."""
 
     def resolved_constraint(self) -> str:
         if self.constraint:
@@ -87,13 +89,27 @@ def llm_usage(agent) -> dict | None:
     return client.usage.to_dict() if client is not None else None
 
 
-def synthesize_checked(agent, sandbox, room: str, constraint: str, attempts: int = 3):
-    """Ask ``agent`` for a program until ``sandbox`` accepts (loads) one; returns ``(proposal, messages)``."""
+def synthesize_checked(agent, sandbox, room: str, constraint: str, attempts: int = 3, allow_partial: bool = False):
+    """Ask ``agent`` for a program until ``sandbox`` accepts (loads) one; returns ``(proposal, messages)``. A program
+    written without words that change the request's meaning (:func:`rewards.proposal.meaning_lost`) is refused
+    (ValueError) unless ``allow_partial``; then it is marked ``partial``."""
+    from rewards.proposal import meaning_lost
+
     feedback, messages = None, []
     for _ in range(attempts):
         proposal = agent.synthesize(room, constraint, feedback=feedback)
         result = sandbox.load(proposal.code)
         if result.ok:
+            lost = meaning_lost(proposal.not_understood)
+            if lost and not allow_partial:
+                who = "the offline planner" if proposal.source == "offline" else proposal.source
+                raise ValueError(
+                    f"{who} did not understand {', '.join(repr(w) for w in lost)} in {constraint!r}; those words "
+                    "change what is asked, so a program without them could reward something else or the opposite. "
+                    "Rephrase the request (docs: what the planner understands, `iarcs reward synthesize --help`), "
+                    "use an LLM (--model), or pass --allow-partial (allow_partial: true in a task config) to use "
+                    "the program anyway, marked partial")
+            proposal.partial = bool(lost)
             return proposal, messages
         feedback = result.message
         messages.append(result.message)
@@ -120,7 +136,7 @@ def setup_task_reward(cfg: TaskConfig, room: str, run_dir: Path, log=print):
         log(f"task reward: the current program of {memory.path} (stage {memory.stages()})")
     else:
         try:
-            proposal, failures = synthesize_checked(agent, sandbox, room, constraint)
+            proposal, failures = synthesize_checked(agent, sandbox, room, constraint, allow_partial=cfg.allow_partial)
         except Exception:
             sandbox.close()
             raise

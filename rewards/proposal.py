@@ -11,8 +11,25 @@ Both serialise to plain JSON so the reward evolution memory (:mod:`rewards.memor
 
 from __future__ import annotations
 
+import re
 from dataclasses import asdict, dataclass, field
 from typing import Any, Protocol
+
+
+#: Words that change what a request means (negation, direction, quantifiers): a program that ignored one may reward
+#: something else or the opposite of what was asked.
+MEANING_WORDS = frozenset("""
+not no never without none nothing neither nor except unless avoid cannot can't don't doesn't isn't aren't
+toward towards away facing faces face behind beside either both between centred centered centre center middle
+against opposite apart far near close closer nearer farther further beyond around inside outside
+every each all any some least most more fewer less exactly only than maximum minimum max min
+""".split())
+
+
+def meaning_lost(not_understood: list[str]) -> list[str]:
+    """The not-understood parts of a request that hold a word changing its meaning (:data:`MEANING_WORDS`)."""
+    return [part for part in not_understood
+            if MEANING_WORDS & set(re.findall(r"[a-z']+", part.lower().replace("’", "'")))]
 
 
 @dataclass
@@ -39,6 +56,9 @@ class RewardProposal:
     over reflection stages); empty when none."""
     notes: str = ""
     """What changed and why (reflections fill this in)."""
+    partial: bool = False
+    """Written although words that change the request's meaning were not understood (:func:`meaning_lost`);
+    only with ``--allow-partial`` / ``allow_partial``."""
 
     def to_dict(self) -> dict:
         return asdict(self)

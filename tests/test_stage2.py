@@ -111,6 +111,40 @@ def test_reward_commands_report_bad_input_clearly(tmp_path, capsys, monkeypatch)
     assert "not understood: purple unicorn" in capsys.readouterr().err
 
 
+def test_a_request_whose_meaning_was_not_understood_is_refused_unless_allowed(tmp_path, capsys):
+    """The planner does not understand "away from": a program rewarding facing the bed would be the opposite of the
+    request, so the command refuses (exit 2) and says what to do; --allow-partial writes it, marked partial."""
+    request = "A bedroom where the desk faces away from the bed"
+    program = tmp_path / "away.py"
+    assert main(["reward", "synthesize", "--constraint", request, "--out", str(program)]) == 2
+    err = capsys.readouterr().err
+    assert "did not understand 'away from'" in err and "--model" in err and "--allow-partial" in err
+    assert not program.exists()
+    assert main(["reward", "synthesize", "--constraint", request, "--out", str(program), "--allow-partial"]) == 0
+    assert "PARTIAL" in capsys.readouterr().out
+    meta = json.loads(program.with_suffix(".json").read_text())
+    assert meta["partial"] is True and meta["not_understood"] == ["away from"]
+    assert "# PARTIAL: written without away from" in program.read_text()
+    # a word that does not change the meaning is reported, not refused
+    assert main(["reward", "synthesize", "--constraint", "A cozy bedroom with a double bed",
+                 "--out", str(tmp_path / "cozy.py")]) == 0
+    assert json.loads((tmp_path / "cozy.json").read_text())["partial"] is False
+
+
+def test_training_refuses_a_partial_program_unless_told(tmp_path):
+    from agents.stage2 import TaskConfig, setup_task_reward
+
+    task = TaskConfig(constraint="A bedroom where no two pieces of furniture stand closer than 0.5 m", reflect_every=0)
+    with pytest.raises(ValueError, match=r"did not understand 'no', 'stand closer than 0.5 m'"):
+        setup_task_reward(task, "bedroom", tmp_path / "run")
+    reward, agent, memory, proposal = setup_task_reward(
+        TaskConfig(constraint=task.constraint, reflect_every=0, allow_partial=True), "bedroom", tmp_path / "run2")
+    try:
+        assert proposal.partial and memory.current().partial
+    finally:
+        reward.close()
+
+
 def test_generate_trains_once_then_reuses_the_adapter(tmp_path, monkeypatch, capsys):
     monkeypatch.setenv("IARCS_HOME", str(tmp_path / "home"))
     args = ["generate", "--room", "bedroom", "--constraint", PROMPT, "--num-scenes", "4", "--epochs", "1"]

@@ -75,7 +75,7 @@ def train_adapter(args, room: str, task: str | None, run_dir: Path) -> Path:
     evaluations against each other, so without one it is the last epoch's)."""
     from agents.train import load_train_config, run
 
-    agent = {"model": args.model or "", "api_base": args.api_base or ""}
+    agent = {"model": args.model or "", "api_base": args.api_base or "", "allow_partial": args.allow_partial}
     if args.model:
         agent["llm"] = {"timeout": args.timeout, "max_seconds": args.max_seconds}
     cfg = load_train_config(TEMPLATE, room=room, out=str(run_dir), epochs=args.epochs, adapter="task",

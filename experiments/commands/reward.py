@@ -18,6 +18,9 @@ def add_agent_options(p) -> None:
     p.add_argument("--timeout", type=finite_float, default=120.0, help="seconds per LLM request (default 120)")
     p.add_argument("--max-seconds", type=finite_float, default=240.0,
                    help="longest one synthesis or reflection may take, retries included (default 240)")
+    p.add_argument("--allow-partial", action="store_true",
+                   help="use a program although words that change the request's meaning (not, away, every, ...) "
+                        "were not understood; it is marked partial")
 
 
 def register(sub) -> None:
@@ -43,7 +46,7 @@ def register(sub) -> None:
 
 
 def synthesize(room: str, constraint: str, model: str | None = None, api_base: str | None = None,
-               timeout: float = 120.0, max_seconds: float = 240.0, log=print):
+               timeout: float = 120.0, max_seconds: float = 240.0, allow_partial: bool = False, log=print):
     """A sandbox-checked proposal from the configured agent (an LLM or the offline planner)."""
     from agents.stage2 import synthesize_checked
     from iarcs_env.rooms import get_room
@@ -58,7 +61,7 @@ def synthesize(room: str, constraint: str, model: str | None = None, api_base: s
     with RewardSandbox(room=room) as sandbox:
         agent = make_agent(model, api_base=api_base, sandbox=sandbox, **llm)
         log(f"writing a reward program with {'the offline planner' if not model else model} ...")
-        proposal, _ = synthesize_checked(agent, sandbox, room, constraint)
+        proposal, _ = synthesize_checked(agent, sandbox, room, constraint, allow_partial=allow_partial)
     return proposal
 
 
@@ -70,6 +73,8 @@ def write_proposal(proposal, path: Path) -> tuple[Path, Path]:
     path.parent.mkdir(parents=True, exist_ok=True)
     header = (f"# Reward program for: {proposal.constraint}\n# Written by: {proposal.source}; weight "
               f"{proposal.weight:g} next to the universal rewards. Reasoning: {path.with_suffix('.json').name}\n")
+    if proposal.partial:
+        header += f"# PARTIAL: written without {', '.join(proposal.not_understood)} (--allow-partial)\n"
     path.write_text(header + proposal.code.rstrip() + "\n")
     meta = path.with_suffix(".json")
     meta.write_text(json.dumps(proposal.to_dict(), indent=1))
@@ -77,12 +82,14 @@ def write_proposal(proposal, path: Path) -> tuple[Path, Path]:
 
 
 def cmd_synthesize(args) -> int:
-    proposal = synthesize(args.room, args.constraint, args.model, args.api_base, args.timeout, args.max_seconds)
+    proposal = synthesize(args.room, args.constraint, args.model, args.api_base, args.timeout, args.max_seconds,
+                          args.allow_partial)
     program, meta = write_proposal(proposal, Path(args.out))
     print("decomposition:\n" + "\n".join(f"  - {d}" for d in proposal.decomposition))
     if proposal.not_understood:
         print("not understood (ignored): " + ", ".join(proposal.not_understood))
-    print(f"program: {program} (weight {proposal.weight:g}); reasoning and decomposition: {meta}")
+    partial = " PARTIAL: it ignores words that change what was asked" if proposal.partial else ""
+    print(f"program: {program} (weight {proposal.weight:g}){partial}; reasoning and decomposition: {meta}")
     return 0
 
 
