@@ -419,3 +419,25 @@ def test_a_partial_adapter_follows_the_adapter_it_starts_from_and_carries_it_whe
     a, b = policy.sample(FLOORS, generator=g()), other.sample(FLOORS, generator=g())
     assert torch.equal(a.labels, b.labels) and torch.allclose(a.translations, b.translations)
     assert torch.allclose(a.half_sizes, b.half_sizes)
+
+
+@pytest.mark.parametrize("prediction_type", ["sample", "v_prediction"])
+def test_the_rl_stack_takes_priors_that_predict_x0_or_v_with_slot_identity(prediction_type):
+    """The GPU recipe's prior (x0 prediction, slot embeddings) under DDPO: the policy's rollout is the prior's own
+    sampler while the adapter is zero, its log-probs are finite, and an update moves the policy."""
+    from iarcs_env.schedule import NoiseSchedule
+
+    torch.manual_seed(0)
+    prior = perturb_zero_init(ScenePrior.create("bedroom", default_stats("bedroom"), "tiny", slot_embedding=True,
+                                                schedule=NoiseSchedule(prediction_type=prediction_type)), 0)
+    policy = DiffusionPolicy(prior, num_steps=STEPS)
+    g = lambda: torch.Generator().manual_seed(3)  # noqa: E731
+    a = policy.sample(FLOORS[:4], generator=g())
+    b = prior.sample(FLOORS[:4], num_steps=STEPS, eta=policy.eta, generator=g())
+    assert torch.equal(a.labels, b.labels) and torch.allclose(a.translations, b.translations)
+    model = DDPO(policy, make_env(), verbose=0, learning_rate=1e-3, minibatch_size=4, samples_per_floor=4, seed=0)
+    before = adapter_weights(model)
+    model.learn(8 * STEPS)
+    after = adapter_weights(model)
+    assert model.epoch == 1 and any(not torch.equal(before[k], after[k]) for k in before)
+    assert all(torch.isfinite(v).all() for v in after.values())
