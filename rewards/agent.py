@@ -6,7 +6,7 @@ reward program ``def reward(scene)`` with a weight, validated in the sandbox, an
     revised = agent.reflect(context)                                          # a ReflectionContext
 
 The model answers in sections (REASONING / DECOMPOSITION / CODE / WEIGHT, optional NOT UNDERSTOOD,
-NOTES and CURRICULUM). Every answer is parsed and checked: static checks (:func:`rewards.sandbox.check_program`)
+NOTES and CURRICULUM). Every answer is parsed and checked: static checks (:func:`rewards.program_check.check_program`)
 and a smoke test on fixture scenes (``RewardSandbox.load``). A failure goes back to the model as the next
 user message, up to ``max_attempts`` answers; then :class:`RewardSynthesisError` carries every attempt.
 Model call failures are :class:`rewards.llm.LLMError` (raised as they are).
@@ -327,7 +327,7 @@ class LLMRewardAgent:
         """'' when the answer is usable, else the message that goes back to the model."""
         if parsed.problems:
             return "\n".join(f"- {p}" for p in parsed.problems)
-        from .sandbox import check_program
+        from .program_check import check_program
 
         issues = check_program(parsed.code)
         if issues:

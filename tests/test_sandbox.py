@@ -235,7 +235,7 @@ def test_contained_by_worker(sandbox, batch, name, code, fragment):
 OS_GLOBALS = ("def osg():\n    return [c for c in ().__class__.__base__.__subclasses__()\n"
               "            if c.__name__ == '_wrap_close'][0].__init__.__globals__\n\n")
 FRAME_GLOBALS = ("def worker_globals():\n    try:\n        1 / 0\n    except Exception as e:\n"
-                 "        f = e.__traceback__.tb_frame\n    while 'subprocess' not in f.f_globals:\n"
+                 "        f = e.__traceback__.tb_frame\n    while 'pickle' not in f.f_globals:\n"
                  "        f = f.f_back\n    return f.f_globals\n\n")
 WORKER_PIPE = ("def worker_pipe():\n    try:\n        1 / 0\n    except Exception as e:\n"
                "        f = e.__traceback__.tb_frame\n    while 'proto_out' not in f.f_locals:\n"
@@ -259,7 +259,8 @@ ESCAPES = [
      "opening '/etc/passwd' is not allowed"),
     ("socket", prog("osg()['__builtins__']['__import__']('socket').socket()", OS_GLOBALS),
      "socket.__new__ is not allowed"),
-    ("subprocess_via_frames", prog("worker_globals()['subprocess'].run(['touch', '" + PWNED + "'])", FRAME_GLOBALS),
+    ("subprocess_via_frames", prog("worker_globals()['__builtins__']['__import__']('subprocess').run(['touch', '"
+                                   + PWNED + "'])", FRAME_GLOBALS),
      "subprocess.Popen is not allowed"),
     ("ctypes_via_frames", prog("worker_globals()['__builtins__']['__import__']('ctypes').CDLL(None)", FRAME_GLOBALS),
      "is not allowed in the reward sandbox"),
