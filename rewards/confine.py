@@ -59,23 +59,6 @@ def read_roots(project_root: Path) -> list[str]:
     return sorted({os.path.realpath(r) for r in roots if os.path.exists(r)})
 
 
-def unavailable() -> dict:
-    """The kernel guards this machine lacks (name -> why), found without applying any."""
-    missing = {}
-    try:
-        from landlock.plumbing import landlock_abi_version
-
-        if landlock_abi_version() < 1:
-            missing["landlock"] = "the kernel reports no Landlock ABI"
-    except Exception as err:  # noqa: BLE001 -- no library, no system call, disabled at boot
-        missing["landlock"] = f"{type(err).__name__}: {err}".splitlines()[0]
-    try:
-        importlib.import_module("pyseccomp")
-    except Exception as err:  # noqa: BLE001 -- no libseccomp
-        missing["seccomp"] = f"{type(err).__name__}: {err}".splitlines()[0]
-    return missing
-
-
 def confine(project_root: Path) -> dict:
     """Confine this process for good (Landlock, then seccomp); ``{"applied": [...], "missing": {name: why}}``."""
     applied, missing = [], {}

@@ -14,14 +14,23 @@ REAL_DATA = REPO.parent / "shared" / "data" / "3dfront"
 
 
 def pytest_configure(config):
-    """On a machine whose kernel cannot confine the reward worker (no Landlock or seccomp), the tests of everything
-    else run it behind the Python-level guards (IARCS_WEAK_SANDBOX=1), and the hostile-program tests skip saying
-    why."""
+    """On a machine whose kernel cannot confine the reward worker (no Landlock or seccomp, or a container that
+    refuses them), the tests of everything else run it behind the Python-level guards (IARCS_WEAK_SANDBOX=1), and
+    the hostile-program tests skip saying why. Found by confining a throw-away process as the worker does."""
+    import json
     import os
+    import subprocess
+    import sys
 
-    from rewards.confine import WEAK_SANDBOX_ENV, unavailable
+    from rewards.confine import WEAK_SANDBOX_ENV
 
-    missing = unavailable()
+    probe = subprocess.run([sys.executable, "-c", "import json, sys; from pathlib import Path; "
+                            "from rewards.confine import confine; print(json.dumps(confine(Path(sys.argv[1]))))",
+                            str(REPO)], cwd=REPO, capture_output=True, text=True, timeout=120)
+    try:
+        missing = json.loads(probe.stdout.strip().splitlines()[-1])["missing"]
+    except (IndexError, ValueError, KeyError):
+        missing = {"kernel guards": (probe.stderr.strip().splitlines() or ["the probe failed"])[-1]}
     if missing:
         os.environ[WEAK_SANDBOX_ENV] = "1"
         print(f"note: the reward sandbox cannot be confined here ({missing}); its tests run with {WEAK_SANDBOX_ENV}=1")
