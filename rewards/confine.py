@@ -90,7 +90,7 @@ def _landlock(roots: list[str]) -> str:
     return f"ABI {abi}, read-only beneath {len(roots)} folders"
 
 
-def _seccomp(refused=_REFUSED) -> str:
+def _seccomp() -> str:
     import pyseccomp as seccomp
 
     pid = os.getpid()
@@ -98,7 +98,7 @@ def _seccomp(refused=_REFUSED) -> str:
     rules = seccomp.SyscallFilter(seccomp.ALLOW)
     rules.set_attr(seccomp.Attr.CTL_TSYNC, 1)  # every thread of the process, not only this one
     count = 0
-    for name in refused:
+    for name in _REFUSED:
         try:
             rules.add_rule(eperm, name)
             count += 1
