@@ -544,7 +544,7 @@ class DDPO:
         state = torch.load(path / "trainer_state.pt", map_location="cpu", weights_only=False)
         name = state["adapter"]
         policy.load_adapter(path / "adapter" / name, name)
-        algo = ALGORITHMS.get(state["algorithm"], cls)
+        algo = algorithm_class(state["algorithm"], cls)
         model = algo(policy, env, config=DDPOConfig.from_dict(state["config"]), **kwargs)
         model.optimizer.load_state_dict(state["optimizer"])
         model.epoch, model.num_timesteps = state["epoch"], state["num_timesteps"]
@@ -560,6 +560,20 @@ class DDPO:
             model.generator.manual_seed(model._seed)
             model._env_seeded = False
         return model
+
+
+def algorithm_class(name: str, base: type) -> type:
+    """The class among ``base`` and its subclasses whose ``name`` is ``name`` (a checkpoint's algorithm); import the
+    module defining it first (:mod:`agents.algorithms` imports them all)."""
+    classes, found = [base], None
+    while classes:
+        cls = classes.pop()
+        found = cls if cls.name == name else found
+        classes += cls.__subclasses__()
+    if found is None:
+        raise ValueError(f"the checkpoint was trained with {name!r}, which no imported algorithm is; "
+                         "`import agents.algorithms` loads them all")
+    return found
 
 
 def global_rng_state() -> dict:
@@ -595,18 +609,3 @@ class DDPOSF(DDPO):
         loss = -(adv * log_prob).mean()
         approx_kl = float((batch["sample_log_prob"] - log_prob.detach()).mean())
         return loss, {"clip_fraction": 0.0, "approx_kl": approx_kl}
-
-
-ALGORITHMS: dict[str, type[DDPO]] = {"DDPO-IS": DDPO, "DDPO-SF": DDPOSF}
-
-
-def get_algorithm(name: str) -> type[DDPO]:
-    """``ddpo`` / ``ddpo-is``, ``ddpo-sf`` or ``physics-gradient`` (case-insensitive)."""
-    key = name.upper().replace("_", "-")
-    key = {"DDPO": "DDPO-IS"}.get(key, key)
-    if key not in ALGORITHMS:
-        raise ValueError(f"unknown algorithm {name!r}; choose one of: ddpo (= ddpo-is), ddpo-sf, physics-gradient")
-    return ALGORITHMS[key]
-
-
-from . import physics_gradient  # noqa: E402,F401  (registers PhysicsGradient in ALGORITHMS)

@@ -25,7 +25,7 @@ from iarcs_env import geometry as geo
 from iarcs_env.scene import decode_geometry, floor_half_extents, footprint_reach
 
 from . import distributed
-from .ddpo import ALGORITHMS, DDPO
+from .ddpo import DDPO
 
 
 def physics_penalty(x0: torch.Tensor, stats, floors, out_of_bound_weight: float = 1.0) -> torch.Tensor:
@@ -83,6 +83,3 @@ class PhysicsGradient(DDPO):
                 infos.append({"loss": loss.item(), "grad_norm": float(grad_norm)})
         stats = {key: float(np.mean([i[key] for i in infos])) for key in infos[0]}
         return {**stats, "approx_kl": 0.0, "clip_fraction": 0.0}
-
-
-ALGORITHMS[PhysicsGradient.name] = PhysicsGradient

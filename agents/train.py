@@ -141,7 +141,7 @@ def build(cfg: TrainConfig, tensorboard_log: Path | None = None, task_reward=Non
     import iarcs_env  # noqa: F401  (registers the environments)
     from rewards.composite import CompositeReward
 
-    from .ddpo import get_algorithm
+    from .algorithms import get_algorithm
     from .policy import DiffusionPolicy
 
     prior = build_prior(cfg)

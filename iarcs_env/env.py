@@ -42,13 +42,6 @@ def evaluate_reward(reward: RewardFn, scene: SceneBatch) -> tuple[np.ndarray, di
     return as_np(total), {k: as_np(v) for k, v in terms.items()}
 
 
-def default_reward(stats: DatasetStats) -> RewardFn:
-    """The universal composite reward (collision, boundary, accessibility, object-count prior)."""
-    from rewards.composite import CompositeReward  # universal rewards only; never the synthesis code
-
-    return CompositeReward.universal(stats)
-
-
 STATS_DIR = Path(__file__).parent / "data" / "stats"
 
 
@@ -81,7 +74,8 @@ class DenoisingVectorEnv(VectorEnv):
         num_steps: DDIM steps per episode (the paper uses 20; T = 1000 training timesteps).
         floors: floor plans to draw from (any frame: they are centred), default procedural held-out rooms.
         stats: dataset statistics that scale the features; default those of the shipped prior.
-        reward: terminal reward callable on a :class:`SceneBatch`; default the universal composite.
+        reward: terminal reward callable on a :class:`SceneBatch` (required; ``gym.make`` hands in the universal
+            composite through :mod:`rewards.environments`, so this package never imports the rewards).
         num_train_timesteps: T of the noise schedule.
     """
 
@@ -102,7 +96,10 @@ class DenoisingVectorEnv(VectorEnv):
         self.num_steps = num_steps
         self.render_mode = render_mode
         self.stats = stats or default_stats(self.spec_room.name)
-        self.reward_fn = reward or default_reward(self.stats)
+        if reward is None:
+            raise ValueError("the environment needs a reward: gym.make('iARCS-...-v0') hands in the universal "
+                             "composite; pass reward=... (any callable SceneBatch -> (B,)) when building it directly")
+        self.reward_fn = reward
         floors = list(floors) if floors is not None else default_floors(self.spec_room.name)
         if not floors:
             raise ValueError("the environment needs at least one floor plan")
@@ -227,5 +224,5 @@ def register_envs() -> None:
         env_id = f"iARCS-{room.gym_name}-v0"
         if env_id in gym.registry:
             continue
-        gym.register(env_id, entry_point="iarcs_env.env:DenoisingEnv",
-                     vector_entry_point="iarcs_env.env:DenoisingVectorEnv", kwargs={"room": room.name})
+        gym.register(env_id, entry_point="rewards.environments:make_env",  # (the reward is handed in there)
+                     vector_entry_point="rewards.environments:make_vector_env", kwargs={"room": room.name})

@@ -11,7 +11,8 @@ from tensordict import TensorDict
 import iarcs_env  # noqa: F401
 from conftest import load_benchmark, perturb_zero_init
 from agents.callbacks import CheckpointCallback, EvalCallback, StopTrainingOnRewardThreshold
-from agents.ddpo import DDPO, DDPOSF, gae_advantages, get_algorithm
+from agents.algorithms import get_algorithm
+from agents.ddpo import DDPO, DDPOSF, gae_advantages
 from agents.physics_gradient import PhysicsGradient, physics_penalty
 from agents.denoiser import ScenePrior
 from agents.policy import DiffusionPolicy

@@ -1,0 +1,19 @@
+"""The RL algorithms a training config can name (``algorithm:``), by name: DDPO-IS and DDPO-SF
+(:mod:`agents.ddpo`) and the physics gradient (:mod:`agents.physics_gradient`). Other algorithms plug in by
+subclassing :class:`agents.ddpo.DDPO` and being added here."""
+
+from __future__ import annotations
+
+from .ddpo import DDPO, DDPOSF
+from .physics_gradient import PhysicsGradient
+
+ALGORITHMS: dict[str, type[DDPO]] = {cls.name: cls for cls in (DDPO, DDPOSF, PhysicsGradient)}
+
+
+def get_algorithm(name: str) -> type[DDPO]:
+    """``ddpo`` / ``ddpo-is``, ``ddpo-sf`` or ``physics-gradient`` (case-insensitive)."""
+    key = name.upper().replace("_", "-")
+    key = {"DDPO": "DDPO-IS"}.get(key, key)
+    if key not in ALGORITHMS:
+        raise ValueError(f"unknown algorithm {name!r}; choose one of: ddpo (= ddpo-is), ddpo-sf, physics-gradient")
+    return ALGORITHMS[key]
