@@ -5,7 +5,7 @@
 with LoRA adapters (peft; r = 16, alpha = 16 on the attention's q/k/v/out projections) as the trainable
 parameters theta. Each task gets its own named adapter, saved and loaded in peft's own format
 (``adapter_config.json`` + ``adapter_model.safetensors``). The log-probability is the MEAN of per-element
-Gaussian log-densities over a scene (DESIGN.md), shared with :mod:`iarcs_env.schedule`.
+Gaussian log-densities over a scene (so its scale does not grow with the number of slots), shared with :mod:`iarcs_env.schedule`.
 
 An adapter may adapt only some feature groups of a slot (``adapted``; e.g. ``("position", "yaw")``): the
 others follow its *reference*, eps = where(adapted, eps_theta, eps_ref). The reference is the adapter it was

@@ -1,6 +1,6 @@
 """The paper's physical-plausibility metrics and the set-level statistics, batched.
 
-Definitions (DESIGN.md, "Metric definitions"; used exactly):
+Definitions (the paper's, after PhyScene; where they leave a choice, it is said):
 
 * **Ground objects**: all objects but ``ceiling_lamp`` and ``pendant_lamp``.
 * **Collision**: two ground objects whose oriented 3D boxes overlap with a volume > 1e-6 m^3.
@@ -17,7 +17,7 @@ Definitions (DESIGN.md, "Metric definitions"; used exactly):
   take the largest.)
 * ``R_reach`` = ground objects whose inflated footprint touches, within one cell (8-neighbourhood), the
   largest free component / ground objects (pooled). A scene with no free cell has no reachable object.
-* ``R_off_floor`` (our addition; not in DESIGN.md): ground objects whose bottom is more than 0.05 m above or
+* ``R_off_floor`` (our addition): ground objects whose bottom is more than 0.05 m above or
   below the floor / ground objects (pooled). Every ground object of the real 3D-FRONT rooms stands on the
   floor, and nothing else asks for it: an RL adapter that may move objects vertically sinks beds into the
   floor to pass a height limit, or lifts furniture to avoid collisions.
@@ -242,7 +242,7 @@ def evaluate_layouts(layouts: Sequence[Layout], reference: Sequence[Layout] | No
                      cell: float = geo.WALK_CELL, agent_radius: float = geo.AGENT_RADIUS, batch_size: int = 256,
                      keep_scenes: bool = False, keep_masks: bool = False, progress: bool = False,
                      features: str | None = None, distribution_kwargs: dict | None = None) -> dict:
-    """Evaluate layouts with the DESIGN.md metrics.
+    """Evaluate layouts with the metrics defined in this module's docstring.
 
     Returns a dict with ``Col_obj``, ``Col_scene``, ``R_out``, ``R_reach``, ``R_walkable`` and
     ``R_off_floor`` and ``R_misaligned`` (fractions in [0, 1]) plus counts (``n_scenes``, ``n_objects``,

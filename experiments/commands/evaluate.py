@@ -227,7 +227,7 @@ def markdown_report(result: dict, name: str) -> str:
     lines.append(f"- walkable grid: {result['cell']} m cells, agent radius {result['agent_radius']} m")
     if result.get("command"):
         lines.append(f"- command: `{result['command']}`")
-    lines += ["", "Definitions (DESIGN.md): ground objects exclude ceiling and pendant lamps; a collision is a 3D "
+    lines += ["", "Definitions (iarcs_env/metrics.py): ground objects exclude ceiling and pendant lamps; a collision is a 3D "
               "box overlap > 1e-6 m³ between ground objects; an object is out of bound when its footprint, shrunk "
               "by 0.05 m per side, has > 1e-5 m² outside the floor; R_walkable = largest 4-connected free region "
               "/ free cells; R_reach = ground objects whose inflated footprint touches that region; R_off_floor (our "

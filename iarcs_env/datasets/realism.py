@@ -9,7 +9,7 @@ real 3D-FRONT files), shared by ``tests/test_procedural.py`` and ``benchmarks/be
   large but finite amount.
 * **Median area**: median floor-polygon area (m^2); compared as the ratio generated / real.
 * **Non-rectangular fraction**: rooms whose floor is not a single rectangle.
-* **Flaw rates** (DESIGN.md's definitions, a plain shapely reference): Col_obj (colliding ground objects
+* **Flaw rates** (the definitions of :mod:`iarcs_env.metrics`, a plain shapely reference): Col_obj (colliding ground objects
   / ground objects; two ground objects collide when their oriented boxes overlap by more than 1e-6 m^3),
   Col_scene (rooms with a collision / rooms) and R_out (objects whose footprint, shrunk by 0.05 m per
   side, has more than 1e-5 m^2 outside the floor / all objects). Boxes rotate about y only, so the
@@ -77,7 +77,7 @@ def nonrect_fraction(layouts: Sequence[Layout]) -> float:
 
 
 def flaw_rates(layouts: Sequence[Layout], shrink: float = 0.05) -> dict[str, float]:
-    """Col_obj, Col_scene and R_out (DESIGN.md definitions) with shapely; a reference, not fast."""
+    """Col_obj, Col_scene and R_out (:mod:`iarcs_env.metrics` definitions) with shapely; a reference, not fast."""
     n_ground = n_col = n_col_scene = n_obj = n_out = 0
     for lay in layouts:
         floor = lay.floor.polygon
