@@ -10,6 +10,7 @@ import importlib
 import math
 import os
 import sys
+import traceback
 from pathlib import Path
 
 #: Modules whose ``register(subparsers)`` adds sub-commands, in the order --help lists them.
@@ -24,6 +25,10 @@ COMMAND_MODULES = [
     "experiments.commands.generate",
     "experiments.commands.info",
 ]
+
+
+#: Set to 1 to see the traceback behind a one-line error too.
+TRACEBACK_ENV = "IARCS_TRACEBACK"
 
 
 class CLIError(Exception):
@@ -95,6 +100,8 @@ def main(argv: list[str] | None = None) -> int:
         check_out_is_not_an_input(args)
         result = args.func(args)
     except user_errors() as err:
+        if os.environ.get(TRACEBACK_ENV) == "1":  # a one-line message may hide a bug: its traceback on request
+            traceback.print_exc()
         print(f"iarcs: error: {err}", file=sys.stderr)
         return 2
     except OSError as err:  # a folder that cannot be written, a path under a file, a full disk: one line, the path
@@ -107,6 +114,11 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:
         print("iarcs: interrupted", file=sys.stderr)
         return 130
+    except Exception:  # noqa: BLE001 -- not the user's input: a bug, shown whole
+        traceback.print_exc()
+        print("iarcs: internal error (a bug, not your input): please report it with the traceback above and the "
+              "command you ran", file=sys.stderr)
+        return 1
     return int(result or 0)
 
 

@@ -123,3 +123,21 @@ def test_no_command_takes_a_bad_scene_as_data(inputs, tmp_path, capsys, argv, sc
     err = capsys.readouterr().err
     assert err.startswith("iarcs: error: ") and "Traceback" not in err and str(bad) in err and re.search(message, err)
     assert bad.read_bytes() == before and not (tmp_path / "r.json").exists() and not (tmp_path / "r").exists()
+
+
+def test_a_bug_shows_its_traceback_and_how_to_report_it(monkeypatch, capsys):
+    import experiments.commands.info as info
+
+    def broken(args):
+        raise RuntimeError("an internal inconsistency")
+
+    monkeypatch.setattr(info, "cmd_info", broken)
+    assert main(["info"]) == 1
+    err = capsys.readouterr().err
+    assert "Traceback" in err and "RuntimeError: an internal inconsistency" in err and "please report it" in err
+    monkeypatch.setattr(info, "cmd_info", lambda args: (_ for _ in ()).throw(ValueError("a user's mistake")))
+    assert main(["info"]) == 2
+    assert capsys.readouterr().err == "iarcs: error: a user's mistake\n"  # one line
+    monkeypatch.setenv("IARCS_TRACEBACK", "1")
+    assert main(["info"]) == 2
+    assert "Traceback" in capsys.readouterr().err  # on request
