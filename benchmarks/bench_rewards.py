@@ -24,7 +24,7 @@ sys.path.insert(0, str(ROOT))  # the repository's packages (never `import benchm
 
 import torch  # noqa: E402
 
-from iarcs_env import geometry as geo  # noqa: E402
+from iarcs_env.walkable import free_space  # noqa: E402
 from iarcs_env.metrics import batch_float64, evaluate_batch  # noqa: E402
 from rewards import accessibility_reward, boundary_reward, collision_reward  # noqa: E402
 
@@ -104,7 +104,7 @@ def main(argv=None) -> int:
     bench("accessibility reward (0.05 m grid)", lambda: accessibility_reward(batch, cell=0.05),
           lambda: [ref.accessibility_reward(l, cell=0.05) for l in centred], 10)
     bench("walkability + reach (0.05 m grid)",
-          lambda: geo.free_space(batch.floors, batch.translations, batch.half_sizes, batch.yaws,
+          lambda: free_space(batch.floors, batch.translations, batch.half_sizes, batch.yaws,
                                  batch.ground_mask, cell=0.05, reach=True),
           lambda: [ref.walkable(l, 0.05) for l in centred], 10)
     bench("all five metrics (evaluate_batch)", lambda: evaluate_batch(batch), lambda: ref.metrics(centred), 10)

@@ -48,6 +48,7 @@ import numpy as np
 import torch
 
 from . import geometry as geo
+from .walkable import FreeSpace, free_space
 from .render import Overlays
 from .rooms import get_room
 from .scene import Layout, SceneBatch
@@ -100,7 +101,7 @@ class BatchResult:
     largest_cells: np.ndarray
     overlap: np.ndarray  # (B, N, N) m^3
     out_area: np.ndarray  # (B, N) m^2
-    space: geo.FreeSpace
+    space: FreeSpace
     scenes: list[SceneResult] = field(default_factory=list)
 
 
@@ -117,7 +118,7 @@ def evaluate_batch(batch: SceneBatch, cell: float = geo.WALK_CELL, agent_radius:
     out = (out_area > geo.OUT_OF_BOUND_AREA) & mask
     off_floor = geo.floor_gaps(batch.translations, batch.half_sizes, ground) > geo.FLOOR_CONTACT_TOL
     misaligned = geo.wall_misalignment(batch.yaws, batch.floors, ground) > geo.ALIGNMENT_TOL_DEG
-    space = geo.free_space(batch.floors, batch.translations, batch.half_sizes, batch.yaws, ground,
+    space = free_space(batch.floors, batch.translations, batch.half_sizes, batch.yaws, ground,
                            cell=cell, radius=agent_radius, reach=True)
     m, g = mask.cpu().numpy(), ground.cpu().numpy()
     res = BatchResult(m, g, colliding.cpu().numpy(), out.cpu().numpy(), off_floor.cpu().numpy(),

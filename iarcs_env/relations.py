@@ -8,7 +8,7 @@ local +x axis, ``left = (cos yaw, -sin yaw)``. Pairwise results are ``(B, N, N)`
 relation of object j to object i. Values for empty slots are computed like any other (finite, meaningless):
 select objects with masks.
 
-Free-space relations reuse the walkable grid of :func:`iarcs_env.geometry.free_space` (0.05 m cells; a
+Free-space relations reuse the walkable grid of :func:`iarcs_env.walkable.free_space` (0.05 m cells; a
 cell is free for an agent of radius r when its centre is inside the floor at least r from the walls and
 at least r from every ground footprint).
 """
@@ -21,6 +21,7 @@ import numpy as np
 import torch
 
 from . import geometry as geo
+from .walkable import FreeSpace, as_numpy, free_space
 from .floorplan import FloorPlan
 from .rooms import CEILING_CLASSES, ROOMS
 from .scene import box_corners_xz
@@ -208,19 +209,19 @@ def back_to_wall(translations: torch.Tensor, half_sizes: torch.Tensor, yaws: tor
 # free space (walkable grid)
 # ------------------------------------------------------------------------------------------------------
 def free_grid(floors: Sequence[FloorPlan], translations, half_sizes, yaws, ground, radius: float,
-              cell: float = geo.WALK_CELL, reach: bool = True) -> geo.FreeSpace:
+              cell: float = geo.WALK_CELL, reach: bool = True) -> FreeSpace:
     """The walkable grid for an agent (or disk) of ``radius`` with the ``ground`` footprints as obstacles
-    (:func:`iarcs_env.geometry.free_space`)."""
-    return geo.free_space(floors, translations, half_sizes, yaws, ground, cell=cell, radius=radius, reach=reach)
+    (:func:`iarcs_env.walkable.free_space`)."""
+    return free_space(floors, translations, half_sizes, yaws, ground, cell=cell, radius=radius, reach=reach)
 
 
-def reachable(space: geo.FreeSpace, ground: torch.Tensor) -> torch.Tensor:
+def reachable(space: FreeSpace, ground: torch.Tensor) -> torch.Tensor:
     """``(B, N)`` bool: ground objects whose footprint inflated by the agent radius touches (within one cell)
     the largest free region, i.e. reached by free paths ``2 * radius`` wide."""
     return torch.as_tensor(space.reach, device=ground.device) & ground
 
 
-def free_disk(space: geo.FreeSpace, translations, half_sizes, yaws, near: torch.Tensor | None,
+def free_disk(space: FreeSpace, translations, half_sizes, yaws, near: torch.Tensor | None,
               within: float) -> torch.Tensor:
     """``(B,)`` bool: a disk of radius ``space.radius`` fits on free floor (its centre on a free cell of
     ``space``: inside the floor and outside every obstacle footprint by at least the radius), and, when
@@ -235,8 +236,8 @@ def free_disk(space: geo.FreeSpace, translations, half_sizes, yaws, near: torch.
         return torch.as_tensor(out)
     x = space.origins[scene, 0] + (cols - space.offsets[scene, 1] + 0.5) * space.cell
     z = space.origins[scene, 1] + (rows - space.offsets[scene, 0] + 0.5) * space.cell
-    t, h, y = geo._np(translations), geo._np(half_sizes), geo._np(yaws)
-    near = geo._np(near).astype(bool)
+    t, h, y = as_numpy(translations), as_numpy(half_sizes), as_numpy(yaws)
+    near = as_numpy(near).astype(bool)
     limit = space.radius + within
     for start in range(0, len(scene), 200_000):  # cells x objects in chunks (bounded memory)
         s = scene[start:start + 200_000]
@@ -251,7 +252,7 @@ def free_disk(space: geo.FreeSpace, translations, half_sizes, yaws, near: torch.
     return torch.as_tensor(out)
 
 
-def _atlas_scenes(space: geo.FreeSpace) -> np.ndarray:
+def _atlas_scenes(space: FreeSpace) -> np.ndarray:
     """Scene index of every atlas cell (-1 in the gaps)."""
     atlas = np.full(space.free.shape, -1, dtype=np.int64)
     for b, ((oy, ox), (h, w)) in enumerate(zip(space.offsets, space.shapes)):

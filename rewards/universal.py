@@ -83,6 +83,7 @@ import torch
 
 from iarcs_env import geometry as geo
 from iarcs_env.geometry import single_thread
+from iarcs_env.walkable import free_space
 from iarcs_env.relations import ALL_CLASSES, CLASS_GROUPS
 from iarcs_env.scene import SceneBatch
 from iarcs_env.stats import DatasetStats
@@ -150,7 +151,7 @@ def boundary_reward(batch: SceneBatch, shrink: float = geo.OUT_OF_BOUND_SHRINK,
 def accessibility_reward(batch: SceneBatch, cell: float = 0.1, agent_radius: float = geo.AGENT_RADIUS,
                          w_coverage: float = 1.0, w_regions: float = 0.1, w_clearance: float = 0.5) -> torch.Tensor:
     """``w_coverage * coverage - w_regions * regions + w_clearance * clearance`` (see the module doc)."""
-    space = geo.free_space(batch.floors, batch.translations, batch.half_sizes, batch.yaws, batch.ground_mask,
+    space = free_space(batch.floors, batch.translations, batch.half_sizes, batch.yaws, batch.ground_mask,
                            cell=cell, radius=agent_radius, reach=False, clearance=w_clearance != 0)
     coverage = np.where(space.floor_cells > 0, space.largest_cells / np.maximum(space.floor_cells, 1), 0.0)
     clearance = np.nan_to_num(space.clearance) if w_clearance else 0.0
