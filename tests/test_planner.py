@@ -12,8 +12,9 @@ import torch
 from iarcs_env.datasets.procedural import generate_layouts
 from iarcs_env.scene import SceneBatch
 from iarcs_env.tasks import TASKS, task_results
-from rewards.planner import (IMPLIED_WEIGHT, NEEDS_OBJECTS, OfflinePlanner, program_constants, read_constraint,
-                             render, success_trend)
+from rewards.constraint_reader import read_constraint
+from rewards.planner import OfflinePlanner, program_constants, render, success_trend
+from rewards.planner_checks import IMPLIED_WEIGHT, NEEDS_OBJECTS
 from rewards.proposal import ReflectionContext, RewardProposal
 from rewards.sandbox import RewardSandbox, check_program
 from rewards.scene_api import Scene
