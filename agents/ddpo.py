@@ -512,7 +512,7 @@ class DDPO:
                  "num_timesteps": self.num_timesteps, "adapter": self.policy.adapter,
                  "optimizer": self.optimizer.state_dict(), "rng": self.rng.bit_generator.state,
                  "generator": self.generator.get_state(), "env_rng": self.venv.np_random.bit_generator.state,
-                 "env_seeded": self._env_seeded, "global_rng": global_rng_state()}
+                 "env_seeded": self._env_seeded}
         torch.save(state, tmp / "trainer_state.pt")
         (tmp / "trainer.json").write_text(json.dumps({k: state[k] for k in ("algorithm", "config", "epoch",
                                                                             "num_timesteps", "adapter")}, indent=1))
@@ -552,8 +552,6 @@ class DDPO:
         model.generator.set_state(state["generator"])
         model.venv.np_random.bit_generator.state = state["env_rng"]
         model._env_seeded = state["env_seeded"]
-        if "global_rng" in state:  # (checkpoints from before it was kept resume as they did)
-            set_global_rng_state(state["global_rng"])
         if distributed.rank() > 0:  # rank 0's streams were saved; the others start new ones from here
             model._seed = distributed.rank_seed(model.config.seed) + model.epoch
             model.rng = np.random.default_rng(model._seed)
@@ -574,27 +572,6 @@ def algorithm_class(name: str, base: type) -> type:
         raise ValueError(f"the checkpoint was trained with {name!r}, which no imported algorithm is; "
                          "`import agents.algorithms` loads them all")
     return found
-
-
-def global_rng_state() -> dict:
-    """The process-wide random streams (torch's, CUDA's, numpy's, Python's): code outside the trainer's own
-    generators (rewards, the environment's helpers) may draw from them, so an exact resume restores them too."""
-    import random
-
-    state = {"torch": torch.get_rng_state(), "numpy": np.random.get_state(), "python": random.getstate()}
-    if torch.cuda.is_available() and torch.cuda.is_initialized():
-        state["cuda"] = torch.cuda.get_rng_state_all()
-    return state
-
-
-def set_global_rng_state(state: dict) -> None:
-    import random
-
-    torch.set_rng_state(state["torch"])
-    np.random.set_state(state["numpy"])
-    random.setstate(state["python"])
-    if "cuda" in state and torch.cuda.is_available() and len(state["cuda"]) == torch.cuda.device_count():
-        torch.cuda.set_rng_state_all(state["cuda"])
 
 
 class DDPOSF(DDPO):
