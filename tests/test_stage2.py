@@ -179,6 +179,10 @@ def test_the_demo_runs_end_to_end_on_a_tiny_budget(tmp_path):
         assert row in report
     assert "def reward(scene)" in report and "## Reflections" in report
     assert all((out / f"renders_{i}.png").exists() for i in range(3))
+    assert "[viewer.html](viewer.html)" in report
+    page = (out / "viewer.html").read_text()
+    rooms = json.loads(page.split('id="iarcs-rooms">', 1)[1].split("</script>", 1)[0])
+    assert [r["name"] for r in rooms] == [f"{row} {j}" for row in ("prior", "stage 1", "stage 2") for j in range(4)]
 
 
 def test_a_task_run_with_an_llm_agent_over_litellm_survives_a_failing_reflection(tiny_task_config, tmp_path):

@@ -42,6 +42,15 @@ def register(sub) -> None:
     p.add_argument("--size", type=int, default=256, help="image size in pixels (default 256)")
     p.set_defaults(func=cmd_render)
 
+    p = dsub.add_parser("export", help="rooms as 3D files (glTF binary or OBJ) and a 3D viewer page")
+    p.add_argument("--in", dest="src", required=True, help=".json file or ATISS folder")
+    p.add_argument("--out", required=True, help="folder for one file per room and viewer.html")
+    p.add_argument("--format", choices=("glb", "obj"), default="glb", help="glb (default; keeps metadata) or obj (+ .mtl)")
+    p.add_argument("--limit", type=int, default=None, help="export only the first K scenes")
+    p.add_argument("--future-dir", help="your 3D-FUTURE-model folder: objects shown with their furniture models "
+                   "(by jid, else the closest model of the class by size)")
+    p.set_defaults(func=cmd_export)
+
     p = dsub.add_parser("stats", help="counts, class frequencies, sizes and room areas of a layout file")
     p.add_argument("--in", dest="src", required=True, help=".json file or ATISS folder")
     p.add_argument("--json", dest="as_json", action="store_true", help="print JSON instead of tables")
@@ -100,6 +109,37 @@ def cmd_render(args) -> int:
     if images:
         save_image(image_grid(images, cols=4, titles=[lay.id[-24:] for lay in layouts[:16]]), out / "overview.png")
     print(f"wrote {len(layouts)} renders to {out}/ (first 16 tiled in {out / 'overview.png'})")
+    return 0
+
+
+def cmd_export(args) -> int:
+    from experiments.cli import CLIError
+    from iarcs_env.future import FutureModels
+    from iarcs_env.scene3d import file_stem, layout_scene, scene_flags, write_scene
+    from iarcs_env.viewer import VIEWER_ROOMS, ViewerNotBuilt, write_viewer
+
+    _positive(args.limit, "--limit")
+    models = FutureModels(args.future_dir) if args.future_dir else None
+    layouts = load_layouts(args.src)[: args.limit]
+    if not layouts:
+        raise CLIError(f"{args.src} holds no scenes")
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    flags = scene_flags(layouts)
+    shown = []
+    for i, (lay, flag) in enumerate(tqdm(list(zip(layouts, flags)), desc="exporting", unit="room")):
+        scene = layout_scene(lay, flag, models)
+        write_scene(scene, out / file_stem(i, lay), args.format)
+        if len(shown) < VIEWER_ROOMS:
+            shown.append((f"{i}: {lay.id}", scene))
+    print(f"wrote {len(layouts)} rooms as .{args.format} to {out}/")
+    if models is not None:
+        print("3D-FUTURE: " + ", ".join(f"{n} {what}" for what, n in sorted(models.report.items())))
+    try:
+        page = write_viewer(shown, out / "viewer.html", title=f"{Path(args.src).name}: {len(shown)} rooms")
+        print(f"3D viewer: {page}" + (f" (the first {len(shown)} rooms)" if len(shown) < len(layouts) else ""))
+    except ViewerNotBuilt as e:
+        print(f"no 3D viewer written: {e}")
     return 0
 
 

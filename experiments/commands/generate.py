@@ -240,7 +240,23 @@ def write_comparison(out: Path, rows: list[dict], task: str | None = None, n_sho
                      f"{per_room:.2f} |")
         metrics[row["name"]] = {k: v for k, v in res.items() if isinstance(v, (int, float))}
     (out / "metrics.json").write_text(json.dumps(metrics, indent=1))
+    lines += ["", comparison_viewer(out / "viewer.html", rows)]
     return lines, pictures
+
+
+def comparison_viewer(path: Path, rows: list[dict], per_row: int = 4) -> str:
+    """The first rooms of each row in one 3D viewer page (same overlays); the report's line about it."""
+    from iarcs_env.scene3d import layout_scene
+    from iarcs_env.viewer import ViewerNotBuilt, write_viewer
+
+    scenes = [(f"{row['name']} {j}", layout_scene(row["layouts"][j], row["result"]["scenes"][j]))
+              for row in rows for j in range(min(per_row, len(row["layouts"])))]
+    try:
+        write_viewer(scenes, path, title="prior and adapters, the same floors")
+    except ViewerNotBuilt as e:
+        return f"No 3D viewer: {e}."
+    return (f"In 3D: [{path.name}]({path.name}), the first {per_row} rooms of each row (orbit and top views, "
+            "the same overlays).")
 
 
 def picture_table(rows: list[dict], pictures: list[Path]) -> str:
