@@ -33,6 +33,7 @@ def inputs(tmp_path_factory):
     (["reward", "score", "--program", "{program}", "--scenes", "{scenes}", "--out", "{program}"], "--program"),
     (["sample", "--floors", "{scenes}", "--out", "{scenes}"], "--floors"),
     (["data", "render", "--in", "{scenes}", "--out", "{scenes}"], "--in"),
+    (["data", "export", "--in", "{scenes}", "--out", "{scenes}"], "--in"),
 ])
 def test_an_output_that_is_an_input_is_refused(inputs, capsys, argv, flag):
     argv = [a.format(**inputs) for a in argv]
@@ -103,6 +104,7 @@ READERS = [
     ["sample", "--floors", "{bad}", "--out", "{root}/r.json"],
     ["data", "stats", "--in", "{bad}"],
     ["data", "render", "--in", "{bad}", "--out", "{root}/r"],
+    ["data", "export", "--in", "{bad}", "--out", "{root}/r"],
     ["data", "convert", "--in", "{bad}", "--out", "{root}/r"],
 ]
 

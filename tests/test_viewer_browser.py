@@ -65,3 +65,33 @@ def test_the_viewer_draws_a_generated_bedroom_without_errors(tmp_path):
     assert not np.array_equal(np.asarray(Image.open(orbit)), np.asarray(Image.open(top)))
     if os.environ.get("IARCS_VIEWER_SHOT"):
         shutil.copy(orbit, os.environ["IARCS_VIEWER_SHOT"])
+
+
+def test_the_overlay_toggles_show_and_hide_the_flagged_objects(tmp_path):
+    from iarcs_env.datasets import save_layouts
+    from test_export3d import hand_room
+
+    src = save_layouts([hand_room()], tmp_path / "room.json")  # collisions, one out of bound, one lifted
+    assert main(["data", "export", "--in", str(src), "--out", str(tmp_path / "e")]) == 0
+    with Browser(CHROMIUM) as browser:
+        browser.open((tmp_path / "e" / "viewer.html").as_uri())
+        browser.wait_for("document.body.dataset.ready === '1'")
+        browser.evaluate("document.getElementById('view-top').click()")  # from above every outline shows
+        counts = browser.evaluate("['colliding', 'out_of_bound', 'off_floor'].map("
+                                  "f => document.getElementById('count-' + f).textContent)")
+        on = browser.screenshot(tmp_path / "on.png")
+        browser.evaluate("['show-colliding', 'show-out_of_bound', 'show-off_floor'].forEach(id => {"
+                         " const box = document.getElementById(id); box.checked = false;"
+                         " box.dispatchEvent(new Event('change')); })")
+        off = browser.screenshot(tmp_path / "off.png")
+        width = int(browser.evaluate("document.querySelector('#view canvas').getBoundingClientRect().width"))
+        assert browser.errors() == []
+    assert counts == ["(2)", "(1)", "(1)"]
+    for rgb in ((230, 0, 0), (200, 0, 200), (0, 70, 255)):  # on the canvas, not the legend's swatches
+        shown = np.asarray(Image.open(on))[:, :width]
+        hidden = np.asarray(Image.open(off))[:, :width]
+        assert overlay_pixels_array(shown, rgb) > 20 and overlay_pixels_array(hidden, rgb) == 0, rgb
+
+
+def overlay_pixels_array(image: np.ndarray, rgb) -> int:
+    return int((np.abs(image[..., :3].astype(np.int32) - np.asarray(rgb)).sum(-1) < 40).sum())
