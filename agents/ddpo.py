@@ -23,6 +23,7 @@ import torch
 from tensordict import TensorDict
 
 from iarcs_env.env import evaluate_reward
+from iarcs_env.schedule import ddim_previous
 
 from . import distributed
 from .callbacks import HIGHER_IS_BETTER, LOWER_IS_BETTER, as_callback, render_grid_tensor
@@ -348,7 +349,7 @@ class DDPO:
         through the 1e-6 floor, and its ratio gradient ((a - mu) / sigma^2) would swamp every other step's.
         It carries no policy-gradient signal, so it is left out of the updates."""
         t = torch.as_tensor(self.venv.timesteps)
-        t_prev = t - self.policy.schedule.num_train_timesteps // self.venv.num_steps
+        t_prev = ddim_previous(t, self.venv.num_steps, self.policy.schedule.num_train_timesteps)
         std = self.policy.schedule.ddim_std(t, t_prev, self.policy.eta, torch.zeros(1))
         keep = torch.nonzero(std.reshape(-1) > 1e-4).reshape(-1)
         return keep if len(keep) else torch.arange(len(t))

@@ -33,7 +33,7 @@ from torch import nn
 
 from iarcs_env.floorplan import FloorPlan
 from iarcs_env.scene import SceneBatch
-from iarcs_env.schedule import gaussian_log_prob, standard_normal
+from iarcs_env.schedule import ddim_previous, gaussian_log_prob, standard_normal
 
 from .denoiser import ScenePrior
 
@@ -242,7 +242,7 @@ class DiffusionPolicy(nn.Module):
         if t.numel() == 1:
             t = t.expand(x_t.shape[0])
         eps = self.eps(x_t, t, floor)
-        t_prev = t - self.schedule.num_train_timesteps // self.num_steps
+        t_prev = ddim_previous(t, self.num_steps, self.schedule.num_train_timesteps)
         # passing prev_sample makes step() compute the Gaussian without drawing from it
         return self.schedule.step(eps, t, x_t, eta=self.eta, prev_sample=x_t, prev_timestep=t_prev)
 

@@ -27,6 +27,7 @@ from gymnasium.vector import AutoresetMode, VectorEnv
 from .floorplan import FloorPlan
 from .rooms import get_room
 from .scene import SceneBatch, floor_features
+from .schedule import ddim_timesteps
 from .stats import DatasetStats
 
 #: A reward maps a decoded scene batch to per-scene totals (B,), optionally with named terms.
@@ -87,8 +88,6 @@ class DenoisingVectorEnv(VectorEnv):
                  render_mode: str | None = None):
         if num_envs < 1:
             raise ValueError(f"num_envs must be at least 1, got {num_envs}")
-        if not 1 <= num_steps <= num_train_timesteps:
-            raise ValueError(f"num_steps must be in 1..{num_train_timesteps}, got {num_steps}")
         if render_mode not in (None, "rgb_array"):
             raise ValueError(f"render_mode must be None or 'rgb_array', got {render_mode!r}")
         self.spec_room = get_room(room)
@@ -105,8 +104,7 @@ class DenoisingVectorEnv(VectorEnv):
             raise ValueError("the environment needs at least one floor plan")
         self.floors = [f.translated(-f.centre) for f in floors]
         self._floor_features = floor_features(self.floors, self.stats, NUM_FLOOR_POINTS).numpy()
-        ratio = num_train_timesteps // num_steps
-        self.timesteps = (np.arange(num_steps - 1, -1, -1) * ratio).astype(np.int64)  # the DDIM grid
+        self.timesteps = ddim_timesteps(num_steps, num_train_timesteps).numpy()
 
         n, f = self.spec_room.max_objects, self.spec_room.feature_dim
         one = spaces.Dict({

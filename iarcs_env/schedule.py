@@ -45,6 +45,20 @@ _LOG_SQRT_2PI = 0.5 * math.log(2 * math.pi)
 PREDICTION_TYPES = ("epsilon", "sample", "v_prediction")
 
 
+def ddim_timesteps(num_steps: int, num_train_timesteps: int = 1000) -> torch.Tensor:
+    """The DDIM grid, the one place it is computed: ``num_steps`` timesteps, evenly spaced and descending,
+    ``t_k = k * (T // num_steps)`` ("leading" spacing: the last one is 0). Each step's previous timestep is
+    ``t - T // num_steps`` (:func:`ddim_previous`; negative after the last step)."""
+    if not 1 <= int(num_steps) <= num_train_timesteps:
+        raise ValueError(f"the number of DDIM steps (num_steps) must be in 1..{num_train_timesteps}; got {num_steps}")
+    return torch.arange(int(num_steps) - 1, -1, -1) * (num_train_timesteps // int(num_steps))
+
+
+def ddim_previous(t: torch.Tensor | int, num_steps: int, num_train_timesteps: int = 1000) -> torch.Tensor:
+    """t_prev of timestep ``t`` on the grid of :func:`ddim_timesteps`."""
+    return torch.as_tensor(t).long() - num_train_timesteps // int(num_steps)
+
+
 @dataclass
 class ScheduleConfig:
     """Hyper-parameters of the noise schedule (saved in checkpoints)."""
@@ -136,9 +150,8 @@ class NoiseSchedule:
         self.alphas = alphas.float()
         self.alphas_cumprod = alphas_cumprod.float()
         self.final_alpha_cumprod = float(cfg.final_alpha_cumprod)
-        self.num_inference_steps: int | None = None
-        self.timesteps = torch.arange(T - 1, -1, -1)
-        self.step_ratio = 1
+        self.num_inference_steps = T
+        self.timesteps = ddim_timesteps(T, T)
 
     @property
     def num_train_timesteps(self) -> int:
@@ -233,20 +246,14 @@ class NoiseSchedule:
 
     # --- DDIM ---------------------------------------------------------------------------------------
     def set_timesteps(self, num_inference_steps: int) -> torch.Tensor:
-        """Choose the DDIM grid: ``num_inference_steps`` timesteps, evenly spaced and descending,
-        ``t_k = k * (T // num_steps)`` ("leading" spacing: the last one is 0). Returns ``timesteps``."""
-        T = self.num_train_timesteps
-        if not 1 <= int(num_inference_steps) <= T:
-            raise ValueError(f"num_inference_steps must be in 1..{T}; got {num_inference_steps}")
-        n = int(num_inference_steps)
-        self.num_inference_steps = n
-        self.step_ratio = T // n
-        self.timesteps = (torch.arange(n - 1, -1, -1) * self.step_ratio).long()
+        """Choose the DDIM grid of :func:`ddim_timesteps` for ``num_inference_steps``; returns ``timesteps``."""
+        self.timesteps = ddim_timesteps(num_inference_steps, self.num_train_timesteps)
+        self.num_inference_steps = len(self.timesteps)
         return self.timesteps
 
     def previous_timestep(self, t: torch.Tensor | int) -> torch.Tensor:
         """t_prev on the current grid (negative after the last step)."""
-        return torch.as_tensor(t).long() - self.step_ratio
+        return ddim_previous(t, self.num_inference_steps, self.num_train_timesteps)
 
     def ddim_std(self, t, t_prev, eta: float, like: torch.Tensor) -> torch.Tensor:
         """Unfloored DDIM sigma_t = eta * sqrt((1-a_prev)/(1-a_t) * (1 - a_t/a_prev)), broadcastable."""

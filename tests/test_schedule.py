@@ -191,5 +191,22 @@ def test_classifier_free_guidance():
 def test_unknown_schedule_options_fail_clearly():
     with pytest.raises(ValueError, match="linear"):
         NoiseSchedule(beta_schedule="cosine")
-    with pytest.raises(ValueError, match="num_inference_steps"):
+    with pytest.raises(ValueError, match=r"number of DDIM steps \(num_steps\) must be in 1..1000; got 0"):
         NoiseSchedule().set_timesteps(0)
+
+
+def test_the_ddim_grid_has_one_home_that_the_schedule_environment_policy_and_ddpo_share():
+    """The environment's timesteps and the policy's previous timesteps are the schedule's grid."""
+    import gymnasium as gym
+
+    from iarcs_env.schedule import ddim_previous, ddim_timesteps
+
+    assert ddim_timesteps(20).tolist() == list(range(950, -1, -50))
+    assert ddim_timesteps(3).tolist() == [666, 333, 0] and ddim_previous(0, 3).item() == -333
+    sched = NoiseSchedule()
+    assert torch.equal(sched.set_timesteps(7), ddim_timesteps(7))
+    assert sched.previous_timestep(sched.timesteps).tolist() == ddim_previous(ddim_timesteps(7), 7).tolist()
+    env = gym.make_vec("iARCS-Bedroom-v0", num_envs=2, vectorization_mode="vector_entry_point", num_steps=7)
+    assert env.unwrapped.timesteps.tolist() == ddim_timesteps(7).tolist()
+    with pytest.raises(ValueError, match=r"DDIM steps \(num_steps\) must be in 1..1000; got 1001"):
+        gym.make("iARCS-Bedroom-v0", num_steps=1001)
