@@ -22,7 +22,7 @@ import torch
 from tensordict import TensorDict
 
 from iarcs_env import geometry as geo
-from iarcs_env.scene import decode_geometry, floor_half_extents, footprint_reach
+from iarcs_env.scene import decode_geometry, floor_half_extents
 
 from . import distributed
 from .ddpo import DDPO
@@ -37,10 +37,7 @@ def physics_penalty(x0: torch.Tensor, stats, floors, out_of_bound_weight: float 
     labels = x0[..., 8:].argmax(-1)
     valid = labels != spec.empty_index
     ground = torch.tensor(spec.ground_mask(), device=x0.device)[labels]
-    reach = footprint_reach(half[..., 0:3:2], torch.cos(yaws), torch.sin(yaws))
-    extent = torch.stack([reach[..., 0], half[..., 1], reach[..., 1]], -1)  # (B, N, 3) half extents x, y, z
-    lo, hi = trans - extent, trans + extent
-    overlap = (torch.minimum(hi[:, :, None], hi[:, None]) - torch.maximum(lo[:, :, None], lo[:, None])).clamp_min(0)
+    overlap = geo.bounds_overlaps(trans, half, yaws)
     pairs = (ground[:, :, None] & ground[:, None]).triu(1)
     volume = (overlap.prod(-1) * pairs).sum((1, 2))
     outside = geo.box_out_of_floor_area(trans, half, yaws, floors, valid, geo.OUT_OF_BOUND_SHRINK).sum(1)

@@ -7,7 +7,8 @@ from typing import Callable
 
 import torch
 
-from iarcs_env.scene import box_corners_xz, decode_geometry, footprint_reach
+from iarcs_env.geometry import bounds_overlaps
+from iarcs_env.scene import box_corners_xz, decode_geometry
 from iarcs_env.schedule import NoiseSchedule
 from iarcs_env.stats import DatasetStats
 
@@ -34,11 +35,7 @@ def overlap_excess(spec, stats: DatasetStats, extents: torch.Tensor, weight: flo
     shrinking, turning or lifting them (a lamp above a bed costs nothing)."""
 
     def overlaps(x, extents):  # (B, N, N, 3) overlap lengths of each pair of boxes' bounds along x, y and z
-        trans, half, yaws = decode_geometry(x, stats, extents)
-        reach = footprint_reach(half[..., 0:3:2], torch.cos(yaws), torch.sin(yaws))
-        bound = torch.stack([reach[..., 0], half[..., 1], reach[..., 1]], -1)
-        lo, hi = trans - bound, trans + bound
-        return (torch.minimum(hi[:, :, None], hi[:, None]) - torch.maximum(lo[:, :, None], lo[:, None])).clamp_min(0)
+        return bounds_overlaps(*decode_geometry(x, stats, extents))
 
     def per_scene(x0_hat, x0, extents):
         objects = x0[..., 8:].argmax(-1) != spec.empty_index

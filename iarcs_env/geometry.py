@@ -34,7 +34,7 @@ import shapely
 import torch
 
 from .floorplan import FloorPlan
-from .scene import box_corners_xz
+from .scene import box_corners_xz, footprint_reach
 
 #: Collision threshold of the metrics (m^3): two ground objects collide when their boxes overlap more.
 COLLISION_VOLUME = 1e-6
@@ -182,6 +182,16 @@ def footprints(translations: torch.Tensor, half_sizes: torch.Tensor, yaws: torch
     if shrink:
         half = (half - shrink).clamp_min(0.0)
     return box_corners_xz(translations[..., 0:3:2], half, yaws)
+
+
+def bounds_overlaps(translations: torch.Tensor, half_sizes: torch.Tensor, yaws: torch.Tensor) -> torch.Tensor:
+    """``(B, N, N, 3)`` overlap lengths along x, y and z of each pair of boxes' axis-aligned bounds (the bounds
+    of the turned footprints): differentiable, exact for axis-aligned furniture, for the losses that move
+    boxes apart. :func:`box_overlap_volumes` is the exact oriented measure the metrics use."""
+    reach = footprint_reach(half_sizes[..., 0:3:2], torch.cos(yaws), torch.sin(yaws))
+    bound = torch.stack([reach[..., 0], half_sizes[..., 1], reach[..., 1]], -1)
+    lo, hi = translations - bound, translations + bound
+    return (torch.minimum(hi[:, :, None], hi[:, None]) - torch.maximum(lo[:, :, None], lo[:, None])).clamp_min(0)
 
 
 @single_thread()
