@@ -38,19 +38,47 @@ def dataclass_from_dict(cls: type[T], data: dict, where: str = "config") -> T:
 
 def load_yaml_config(cls: type[T], path: str | Path, **overrides) -> T:
     """Read a YAML file into ``cls``; keyword ``overrides`` that are not None win over the file."""
+    path = Path(path)
+    data = read_yaml_settings(path)
+    data.update({k: v for k, v in overrides.items() if v is not None})
+    return dataclass_from_dict(cls, data, str(path))
+
+
+def read_yaml_settings(path: Path, _chain: tuple[Path, ...] = ()) -> dict:
+    """A YAML config's settings. A config with ``base: OTHER.yaml`` (a path relative to its own folder) holds
+    only what it changes: its settings are merged into the base's, mapping by mapping (``ddpo: {clip_range: 1e-3}``
+    changes one DDPO setting), and a setting given as ``null`` is removed (its default applies)."""
     import yaml
 
-    path = Path(path)
     if not path.exists():
         raise FileNotFoundError(f"no config file at {path} (see experiments/*.yaml for examples)")
+    if path.resolve() in _chain:
+        raise ValueError(f"{path}: its base configs form a loop ({' -> '.join(p.name for p in _chain)} -> {path.name})")
     try:
         data = yaml.safe_load(path.read_text()) or {}
     except yaml.YAMLError as err:
         raise ValueError(f"{path} is not valid YAML ({err})") from None
     if not isinstance(data, dict):
         raise ValueError(f"{path}: expected a mapping of settings at the top level")
-    data.update({k: v for k, v in overrides.items() if v is not None})
-    return dataclass_from_dict(cls, data, str(path))
+    base = data.pop("base", None)
+    if base is None:
+        return data
+    if not isinstance(base, str):
+        raise ValueError(f"{path}: base must be the path of another config, got {base!r}")
+    return merge_settings(read_yaml_settings(path.parent / base, _chain + (path.resolve(),)), data)
+
+
+def merge_settings(base: dict, changes: dict) -> dict:
+    """``base`` with ``changes`` applied: mappings merged key by key, ``None`` removing a key."""
+    merged = dict(base)
+    for key, value in changes.items():
+        if value is None:
+            merged.pop(key, None)
+        elif isinstance(value, dict) and isinstance(merged.get(key), dict):
+            merged[key] = merge_settings(merged[key], value)
+        else:
+            merged[key] = value
+    return merged
 
 
 DEVICE_CHOICES = "auto, cpu, cuda or cuda:N"
