@@ -222,20 +222,25 @@ def reachable(space: FreeSpace, ground: torch.Tensor) -> torch.Tensor:
 
 
 def free_disk(space: FreeSpace, translations, half_sizes, yaws, near: torch.Tensor | None,
-              within: float) -> torch.Tensor:
+              within: float, centre_within: float | None = None) -> torch.Tensor:
     """``(B,)`` bool: a disk of radius ``space.radius`` fits on free floor (its centre on a free cell of
     ``space``: inside the floor and outside every obstacle footprint by at least the radius), and, when
     ``near (B, N)`` is given, its edge is within ``within`` m of a footprint in ``near`` (the centre within
-    ``radius + within`` of that footprint; point-to-rectangle distances, exact at the cell centres)."""
+    ``radius + within`` of that footprint; point-to-rectangle distances, exact at the cell centres). With
+    ``centre_within``, the disk's centre is at most that far from the frame's origin (in a
+    :class:`SceneBatch`, the centre of the floor's bounding box: the middle of the room)."""
     B = len(space.shapes)
     rows, cols = np.nonzero(space.free)
     scene = _atlas_scenes(space)[rows, cols]
+    x = space.origins[scene, 0] + (cols - space.offsets[scene, 1] + 0.5) * space.cell
+    z = space.origins[scene, 1] + (rows - space.offsets[scene, 0] + 0.5) * space.cell
+    if centre_within is not None:
+        keep = np.hypot(x, z) <= centre_within + 1e-9
+        scene, x, z = scene[keep], x[keep], z[keep]
     out = np.zeros(B, dtype=bool)
     if near is None:
         out[scene] = True
         return torch.as_tensor(out)
-    x = space.origins[scene, 0] + (cols - space.offsets[scene, 1] + 0.5) * space.cell
-    z = space.origins[scene, 1] + (rows - space.offsets[scene, 0] + 0.5) * space.cell
     t, h, y = as_numpy(translations), as_numpy(half_sizes), as_numpy(yaws)
     near = as_numpy(near).astype(bool)
     limit = space.radius + within
@@ -258,3 +263,40 @@ def _atlas_scenes(space: FreeSpace) -> np.ndarray:
     for b, ((oy, ox), (h, w)) in enumerate(zip(space.offsets, space.shapes)):
         atlas[oy:oy + h, ox:ox + w] = b
     return atlas
+
+
+#: The zones of :func:`free_share` around an object, as (lateral sign, forward sign): beyond its front, back,
+#: left or right edge.
+ZONES = {"front": ((0, 1),), "back": ((0, -1),), "sides": ((1, 0), (-1, 0)),
+         "around": ((0, 1), (0, -1), (1, 0), (-1, 0))}
+
+
+def free_share(translations: torch.Tensor, half_sizes: torch.Tensor, yaws: torch.Tensor, ground: torch.Tensor,
+               edges: torch.Tensor, depth: float, zone: str, samples: int = 5) -> torch.Tensor:
+    """``(B, N)`` share (0..1) of the floor strip ``depth`` m wide along the object's edges of ``zone``
+    (:data:`ZONES`: the strip as wide as the edge, beyond it) that is free: inside the floor and outside every
+    other ground footprint. Measured at ``samples`` x ``samples`` points per strip (cell centres)."""
+    t, h, y = translations.to(edges.dtype), half_sizes.to(edges.dtype), yaws.to(edges.dtype)
+    grid = (torch.arange(samples, dtype=edges.dtype, device=edges.device) + 0.5) / samples  # (S,) in (0, 1)
+    across = (2 * grid - 1)[:, None].expand(samples, samples).flatten()  # -1..1 along the edge
+    out_of = grid[None, :].expand(samples, samples).flatten()             # 0..1 away from the edge
+    points = []
+    for lat_sign, fwd_sign in ZONES[zone]:
+        if fwd_sign:
+            lat = across[None, None] * h[..., 0:1]
+            fwd = fwd_sign * (h[..., 2:3] + out_of[None, None] * depth)
+        else:
+            lat = lat_sign * (h[..., 0:1] + out_of[None, None] * depth)
+            fwd = across[None, None] * h[..., 2:3]
+        points.append(t[..., None, 0:3:2] + lat[..., None] * left_xz(y)[:, :, None] + fwd[..., None]
+                      * forward_xz(y)[:, :, None])
+    p = torch.cat(points, 2)  # (B, N, P, 2)
+    B, N, P, _ = p.shape
+    inside = inside_floor(p.reshape(B, N * P, 2), edges).reshape(B, N, P)
+    # p in the frame of every object k: inside k's footprint?
+    d = p[:, :, None] - t[:, None, :, None, 0:3:2]  # (B, N, K, P, 2)
+    lx = (d * left_xz(y)[:, None, :, None]).sum(-1).abs() <= h[:, None, :, None, 0]
+    lz = (d * forward_xz(y)[:, None, :, None]).sum(-1).abs() <= h[:, None, :, None, 2]
+    others = ground[:, None, :] & ~torch.eye(N, dtype=torch.bool, device=ground.device)
+    blocked = (lx & lz & others[..., None]).any(2)
+    return (inside & ~blocked).to(edges.dtype).mean(-1)

@@ -6,31 +6,20 @@ from __future__ import annotations
 import re
 from dataclasses import dataclass
 
-from .planner_checks import (CONTEXT_WORDS, Check, Entity, FARSIGHTED_MIN, FILLER, IMPLIED_WEIGHT, IRREGULAR_PLURALS,
-                             NEAR_GAP, NEEDS_OBJECTS, NUMBER_WORDS, OBJECTS, Param, Plan, STUDY_SEATS, UHD_MAX,
-                             VIEW_ANGLE, VIEW_RANGE, WALKING_PATH, WHEELCHAIR_PATH, WHEELCHAIR_TURN, aligned_check,
+from .constraint_grammar import _NUM, _UNIT, GRAMMAR_RULES, QTY, cover_all, quantity, scope
+from .planner_checks import (CONTEXT_WORDS, FARSIGHTED_MIN, FILLER, FRONT_DEPTH, IMPLIED_WEIGHT, IRREGULAR_PLURALS,
+                             NEAR_GAP, NEEDS_OBJECTS, NUMBER_WORDS, OBJECTS, Check, Entity, Param, Plan, STUDY_SEATS,
+                             UHD_MAX, VIEW_ANGLE, VIEW_RANGE, WALKING_PATH, WALL_GAP, WHEELCHAIR_PATH, WHEELCHAIR_TURN,
+                             aligned_check,
                              clear_path_check, count_check, either_side_check, exists_check, facing_check, far_check,
                              height_check, in_front_check, near_check, side_check, turning_check, view_check,
                              wall_check)
+from .planner_scope import EVERY, NONE, SOME, object_check, pair_check
 
 
 # --------------------------------------------------------------------------------------------------------
 # Reading the constraint
 # --------------------------------------------------------------------------------------------------------
-
-_NUM = r"\d+(?:\.\d+)?"
-_UNIT = r"(?:m|cm|mm|meters?|metres?|centimeters?|centimetres?|millimeters?|millimetres?|ft|feet|foot|degrees?|deg)"
-QTY = rf"(?:{_NUM}) ?{_UNIT}\b"
-_TO_METRES = {"cm": 0.01, "centimeter": 0.01, "centimetre": 0.01, "mm": 0.001, "millimeter": 0.001,
-              "millimetre": 0.001, "ft": 0.3048, "feet": 0.3048, "foot": 0.3048}
-
-
-def quantity(text: str) -> float:
-    """The value of a quantity like ``90 cm`` in metres (degrees stay degrees)."""
-    m = re.match(rf"({_NUM}) ?([a-z]+)", text.strip())
-    value, unit = float(m.group(1)), m.group(2)
-    return value * _TO_METRES.get(unit if unit == "feet" else unit.rstrip("s"), 1.0)
-
 
 @dataclass
 class _Mention:
@@ -219,6 +208,10 @@ def _rule_height(r: _Reader) -> None:
                 r.plan.not_understood.append(f"{m.group()} (no object named before it)")
                 r.cover(m.start(), m.end())
                 continue
+            quant, spans = scope(r, subject, m.start())
+            if quant not in (None, EVERY):
+                continue                 # "no shelf ...", "not ...": not read
+            cover_all(r, spans)
             r.add(height_check(subject.entity, quantity(m.group("q")), m.group()), m.start(), m.end(), subject)
 
 
@@ -237,11 +230,17 @@ def _rule_distance(r: _Reader) -> None:
                 r.plan.not_understood.append(f"'{m.group()}' (needs an object before and after it)")
                 r.cover(m.start(), m.end())
                 continue
+            quant, spans = scope(r, subject, m.start())
             if kind == "far":
+                if quant == NONE:        # "no X at least d from Y": not read
+                    continue
                 check = far_check(subject.entity, ref.entity, quantity(m.group("q") or m.group("q2")), m.group())
             else:
                 dist = quantity(m.group("q")) if kind == "near" else NEAR_GAP
-                check = near_check(subject.entity, ref.entity, dist, m.group())
+                check = (near_check(subject.entity, ref.entity, dist, m.group()) if quant in (None, SOME) else
+                         pair_check("far" if quant == NONE else "near", subject.entity, ref.entity,
+                                    quant, dist, m.group()))
+            cover_all(r, spans)
             r.add(check, m.start(), m.end(), subject, ref)
 
 
@@ -252,21 +251,32 @@ def _rule_relations(r: _Reader) -> None:
         (r"\b(?:on |to )?(?:the )?left(?: hand)?(?: side)? of\b", "left"),
         (r"\b(?:on |to )?(?:the )?right(?: hand)?(?: side)? of\b", "right"),
         (r"\bin front of\b", "in_front"),
-        (r"\bfac(?:ing|es|e)(?: towards?| to)?\b", "facing"),
+        (r"\bfac(?:ing|es|e)(?! away)(?: towards?| to)?\b", "facing"),
         (r"\b(?:against|along|touching|flush with|backed (?:up )?against) (?:the |a |one )?walls?\b", "wall"),
         (r"\b(?:parallel (?:to|with)|aligned (?:to|with)|square (?:to|with)|straight (?:to|with)) (?:the |a |its )?"
          r"walls?\b", "aligned"),
     ]
     for pattern, kind in rules:
         for m in re.finditer(pattern, r.text):
+            if _read(r, m.start(), m.end()):
+                continue
             subject = r.before(m.start())
             if kind in ("wall", "aligned"):
                 if subject is None:
                     r.plan.not_understood.append(f"'{m.group()}' (no object named before it)")
                     r.cover(m.start(), m.end())
                     continue
-                check = wall_check if kind == "wall" else aligned_check
-                r.add(check(subject.entity, m.group()), m.start(), m.end(), subject)
+                quant, spans = scope(r, subject, m.start())
+                if kind == "aligned" and quant in (None, EVERY):
+                    check = aligned_check(subject.entity, m.group())
+                elif kind == "wall" and quant in (None, EVERY):
+                    check = wall_check(subject.entity, m.group())
+                elif kind == "wall":     # "a chair against the wall", "the bed not against a wall"
+                    check = object_check("wall", subject.entity, quant, WALL_GAP, m.group())
+                else:
+                    continue
+                cover_all(r, spans)
+                r.add(check, m.start(), m.end(), subject)
                 continue
             ref = r.reference_after(m.end(), subject)
             if subject is None or ref is None:
@@ -274,6 +284,17 @@ def _rule_relations(r: _Reader) -> None:
                 r.cover(m.start(), m.end())
                 continue
             s, o = subject.entity, ref.entity
+            quant, spans = scope(r, subject, m.start())
+            if quant is not None and kind in ("either_side", "left", "right"):
+                continue                 # their words stay uncovered: not read with a quantifier or a negation
+            cover_all(r, spans)
+            if quant is not None:
+                angle = re.compile(rf"\bwithin (?P<q>{_NUM}) ?deg(?:rees?)?\b").match(r.text, ref.end + 1)
+                if angle:
+                    r.cover(angle.start(), angle.end())
+                value = (float(angle.group("q")) if angle else VIEW_ANGLE) if kind == "facing" else FRONT_DEPTH
+                r.add(pair_check(kind, s, o, quant, value, m.group()), m.start(), m.end(), subject, ref)
+                continue
             if kind == "either_side":
                 check = either_side_check(s, o, m.group())
             elif kind in ("left", "right"):
@@ -295,7 +316,7 @@ def _rule_counts(r: _Reader) -> None:
     qual_re = "|".join(sorted(quals, key=len, reverse=True))
     for m in re.finditer(rf"\b(?:(?P<qual>{qual_re}) )?(?P<n>\d+) (?=[a-z])", r.text):
         obj = r.after(m.end())
-        if obj is None or obj.start != m.end():
+        if obj is None or obj.start != m.end() or _read(r, m.start(), m.end()):
             continue
         n, mode = int(m.group("n")), quals.get(m.group("qual") or "", "plain")
         lo, hi = {"min": (n, None), "more": (n + 1, None), "max": (0, n), "less": (0, max(n - 1, 0)),
@@ -306,14 +327,19 @@ def _rule_counts(r: _Reader) -> None:
         r.add(count_check(obj.entity, lo, hi, r.text[m.start():obj.end]), m.start(), obj.end, obj)
     for m in re.finditer(r"\b(?:no|without(?: (?:a|an|any))?)\b (?=[a-z])", r.text):
         obj = r.after(m.end())
-        if obj is None or obj.start != m.end():
+        if obj is None or obj.start != m.end() or obj.used or _read(r, m.start(), m.end()):
             continue
         r.add(count_check(obj.entity, 0, 0, r.text[m.start():obj.end]), m.start(), obj.end, obj,
               meaning=f"no {obj.entity.label}")
 
 
-RULES = (_rule_zones, _rule_wheelchair, _rule_turning, _rule_paths, _rule_view, _rule_distance, _rule_height,
-         _rule_relations, _rule_counts)
+def _read(r: _Reader, start: int, end: int) -> bool:
+    """Some word between ``start`` and ``end`` was already read by another rule."""
+    return any(r.covered[k] for k, (s, e, _) in enumerate(r.words) if s >= start and e <= end)
+
+
+RULES = (_rule_zones, _rule_wheelchair, _rule_turning, _rule_paths, _rule_view, *GRAMMAR_RULES, _rule_distance,
+         _rule_height, _rule_relations, _rule_counts)
 
 
 def read_constraint(constraint: str, room: str = "bedroom") -> Plan:

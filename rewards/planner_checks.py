@@ -69,13 +69,16 @@ IRREGULAR_PLURALS = {"shelf": "shelves", "bookshelf": "bookshelves", "piece of f
 NUMBER_WORDS = {"zero": 0, "one": 1, "two": 2, "three": 3, "four": 4, "five": 5, "six": 6, "seven": 7,
                 "eight": 8, "nine": 9, "ten": 10, "a pair of": 2, "a couple of": 2, "both": 2, "twin": 2}
 
-#: Words that carry no requirement of their own (articles, copulas, room words, ...).
+#: Words that carry no requirement of their own (articles, copulas, room words, ...). Quantifiers (every, each, all,
+#: any, some) are not filler: the rules that read them cover them (:mod:`rewards.constraint_grammar`), the words
+#: no rule read are reported.
 FILLER = set("""
-a an the with where all every each any are is be been being so that this these those can could should must
-will would of and to in on at for it its their there has have having which who whose while as by some
+a an the with where are is be been being so that this these those can could should must
+will would of and to in on at for it its their there has have having which who whose while as by
 room rooms bedroom bedrooms livingroom living diningroom dining scene scenes layout setting space home
 house apartment positioned placed located arranged put position place person people someone user users
 i we my our me us want need needs please make create generate design furnished also both one them they
+stand stands standing kept keep
 """.split())
 
 #: Words understood only as context of a check kind (e.g. "robot grasping" explains a reach limit).
@@ -114,7 +117,7 @@ IMPLIED_WEIGHT = 0.5           # existence of the objects a relation needs (part
 #: unless the constraint already counts it, so adding a missing one already pays. Not here: the checks an
 #: emptier room satisfies (EMPTY_ROOM_KINDS) and the single-object requirements ("height", "wall", "aligned")
 #: whose own value already includes "there is at least one".
-NEEDS_OBJECTS = ("either_side", "side", "in_front", "view", "facing", "near", "turning")
+NEEDS_OBJECTS = ("either_side", "side", "in_front", "view", "facing", "near", "turning", "away", "behind", "between")
 
 #: Check kinds that an emptier room satisfies (no object in the way, no pair too close): reflection's
 #: emphasis step leaves their weight as it is, so it can shift credit toward the checks that need objects.

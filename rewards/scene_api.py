@@ -116,6 +116,18 @@ class Scene:
         """(B, N, 2) unit facing direction (x, z) = (sin(yaw), cos(yaw))."""
         return rel.forward_xz(self._batch.yaws)
 
+    @property
+    def floor_area(self) -> torch.Tensor:
+        """(B,) floor area of each room (m^2)."""
+        return torch.tensor([f.area for f in self._batch.floors], dtype=self._batch.translations.dtype,
+                            device=self._batch.labels.device)
+
+    @property
+    def middle_offset(self) -> torch.Tensor:
+        """(B, N) distance (m) on the floor from the object's centre to the middle of the room (the centre of
+        the floor's bounding box)."""
+        return torch.linalg.vector_norm(self._batch.translations[..., 0:3:2], dim=-1)
+
     # --- pairwise relations ------------------------------------------------------------------------------
     def distance(self) -> torch.Tensor:
         """(B, N, N) centre-to-centre distance on the floor (m)."""
@@ -177,13 +189,25 @@ class Scene:
         paths 2 * radius wide reach it); False for ceiling lamps and empty slots."""
         return rel.reachable(self._space(radius), self._batch.ground_mask)
 
-    def free_circle(self, radius: float, near: torch.Tensor | None = None, within: float = 0.5) -> torch.Tensor:
+    def free_circle(self, radius: float, near: torch.Tensor | None = None, within: float = 0.5,
+                    middle: float | None = None) -> torch.Tensor:
         """(B,) bool: a disk of this radius fits on free floor (inside the floor, outside every ground
-        footprint), with its edge within `within` m of an object of mask `near` (anywhere when near is None)."""
+        footprint), with its edge within `within` m of an object of mask `near` (anywhere when near is None)
+        and, when `middle` is given, its centre at most `middle` m from the middle of the room."""
         b = self._batch
-        key = ("circle", float(radius), None if near is None else near.cpu().numpy().tobytes(), float(within))
+        key = ("circle", float(radius), None if near is None else near.cpu().numpy().tobytes(), float(within),
+               middle)
         return self._cached(key, lambda: rel.free_disk(self._space(radius), b.translations, b.half_sizes, b.yaws,
-                                                       near, float(within)).to(b.labels.device))
+                                                       near, float(within), middle).to(b.labels.device))
+
+    def free_share(self, depth: float, zone: str = "front") -> torch.Tensor:
+        """(B, N) share (0..1) of the floor strip `depth` m wide beyond the object's edges that is free (inside
+        the floor, outside every other ground footprint); zone "front", "back", "sides" (left and right) or
+        "around" (all four edges)."""
+        b = self._batch
+        return self._cached(("share", float(depth), zone), lambda: rel.free_share(
+            b.translations, b.half_sizes, b.yaws, b.ground_mask, self._edges(), float(depth), zone)
+            .to(b.translations.dtype))
 
     # --- shaping helpers ---------------------------------------------------------------------------------
     @staticmethod

@@ -202,6 +202,9 @@ NEEDS_OBJECTS_PROMPTS = {
     "facing": ("the sofa facing the TV", {"has_sofa", "has_tv"}),
     "near": ("a lamp next to the bed", {"has_lamp", "has_bed"}),
     "turning": ("a 1.2 m turning circle next to the sofa", {"has_sofa"}),
+    "away": ("the desk facing away from the bed", {"has_desk", "has_bed"}),
+    "behind": ("a chair behind the desk", {"has_chair", "has_desk"}),
+    "between": ("a nightstand between the bed and the wardrobe", {"has_nightstand", "has_bed", "has_wardrobe"}),
 }
 
 
