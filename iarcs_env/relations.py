@@ -205,6 +205,33 @@ def back_to_wall(translations: torch.Tensor, half_sizes: torch.Tensor, yaws: tor
     return torch.where(inside_floor(p, edges), ahead, -behind)
 
 
+def wall_offset(translations: torch.Tensor, yaws: torch.Tensor, half_sizes: torch.Tensor,
+                edges: torch.Tensor) -> torch.Tensor:
+    """``(B, N)`` distance along the wall straight behind each object (the first boundary edge the ray from its
+    back edge's midpoint along -forward meets) from the middle of that edge to the object's centre; ``inf`` when
+    the ray meets no edge."""
+    f = forward_xz(yaws).to(edges.dtype)
+    c = translations[..., 0:3:2].to(edges.dtype)
+    p = c - f * half_sizes[..., 2:3].to(edges.dtype)
+    a, b = edges[:, None, :, :2], edges[:, None, :, 2:]  # (B, 1, E, 2)
+    e = b - a
+    r = a - p[:, :, None]
+    den = -f[:, :, None, 0] * e[..., 1] + f[:, :, None, 1] * e[..., 0]
+    ok = den.abs() > 1e-12
+    den = torch.where(ok, den, torch.ones_like(den))
+    t = (r[..., 0] * e[..., 1] - r[..., 1] * e[..., 0]) / den
+    u = (-r[..., 0] * f[:, :, None, 1] + r[..., 1] * f[:, :, None, 0]) / den
+    t = torch.where(ok & (u >= 0) & (u <= 1) & (t >= -0.05), t, torch.full_like(t, float("inf")))
+    hit = t.argmin(-1)  # (B, N)
+
+    def pick(x):  # (B, 1, E, 2) -> (B, N, 2): the hit edge's
+        return torch.gather(x.expand(-1, hit.shape[1], -1, -1), 2, hit[..., None, None].expand(-1, -1, 1, 2)).squeeze(2)
+
+    mid, direction = pick((a + b) / 2), pick(e)
+    along = ((c - mid) * direction).sum(-1).abs() / torch.linalg.vector_norm(direction, dim=-1).clamp_min(1e-9)
+    return torch.where(torch.isfinite(t.amin(-1)), along, torch.full_like(along, float("inf")))
+
+
 # ------------------------------------------------------------------------------------------------------
 # free space (walkable grid)
 # ------------------------------------------------------------------------------------------------------

@@ -11,7 +11,7 @@ import re
 
 from .planner_checks import facing_check, near_check
 from .planner_scope import (AWAY_ANGLE, BEHIND_DEPTH, CENTRED_OFFSET, EVERY, FREE_DEPTH, LARGE_ROOM, MIDDLE_RADIUS,
-                            NONE, SMALL_ROOM, SOME, WALL_AWAY, between_check, free_area_check, object_check,
+                            NONE, SMALL_ROOM, SOME, WALL_AWAY, WITHOUT, between_check, free_area_check, object_check,
                             pair_check, room_size_check)
 
 _NUM = r"\d+(?:\.\d+)?"
@@ -36,7 +36,7 @@ def quantity(text: str) -> float:
 _QUANT = re.compile(r"\b(?P<w>every|each|all|any|some|at least 1|no|none|without)(?: (?:of|a|an|any))?"
                     r"(?: (?:the|my|our|these|those|its|their))?(?: (?:2|single))? $")
 _QUANTS = {"every": EVERY, "each": EVERY, "all": EVERY, "any": EVERY, "some": SOME, "at least 1": SOME,
-           "no": NONE, "none": NONE, "without": NONE}
+           "no": NONE, "none": NONE, "without": WITHOUT}
 #: A negation between the subject and the relation ("the desk is not", "should never be").
 _NEGATION = re.compile(r"\b(?:not|never|isn't|aren't|doesn't|don't|shouldn't|mustn't|cannot|can't|won't)\b")
 #: A negated instruction before the subject in the same clause ("do not put the desk ...", "never place a").
@@ -60,7 +60,7 @@ def scope(r, subject, start: int) -> tuple[str | None, list[tuple[int, int]]]:
     if verb:
         negations.append(verb.span())
     if negations:
-        if quant in (EVERY, NONE) or len(negations) > 1:
+        if quant in (EVERY, NONE, WITHOUT) or len(negations) > 1:
             return None, []
         quant = NONE
         spans += negations
@@ -89,7 +89,7 @@ def _rule_free_space(r) -> None:
              "on both sides of": "sides", "on either side of": "sides", "around": "around", "all around": "around"}
     where = "|".join(sorted(zones, key=len, reverse=True))
     free = r"(?:free|clear|open|empty|unobstructed)"
-    strip = [rf"\b(?:(?P<q>{QTY}) (?:of )?)?{free} (?:floor )?(?:space|area|floor|room)(?: of (?P<q2>{QTY}))? "
+    strip = [rf"\b(?:(?:at least )?(?P<q>{QTY}) (?:of )?)?{free} (?:floor )?(?:space|area|floor|room)(?: of (?P<q2>{QTY}))? "
              rf"(?P<where>{where}) ",
              rf"\b(?:the )?(?:space|area|floor) (?P<where>{where}) (?P<obj>[a-z ]+?) (?:is |stays |kept |remains )?"
              rf"(?:free|clear|open|empty|unobstructed)\b"]
@@ -106,7 +106,7 @@ def _rule_free_space(r) -> None:
     mid = r"(?P<mid> (?:in|at) the (?:middle|centre|center)(?: of the (?:room|bedroom|floor))?)?"
     size = r"(?:(?P<{0}>{1}) (?:by (?P<{0}2>{1}) )?(?:wide |across )?)?"
     area = (rf"\b{size.format('q', QTY)}{free} {size.format('qa', QTY)}(?:floor )?(?P<shape>square|"
-            rf"circle|circular area|area|space|spot)(?: (?:of|with a diameter of|of at least) (?P<q3>{QTY})"
+            rf"circle|circular area|area|space|spot)(?: (?:(?:of|with a diameter of|of at least) )?(?P<q3>{QTY})"
             rf"(?: by (?P<q4>{QTY}))?)?(?: (?:across|wide|in diameter|diameter))?{mid}")
     for m in re.finditer(area, r.text):
         q = m.group("q") or m.group("qa") or m.group("q3")

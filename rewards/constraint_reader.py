@@ -14,7 +14,7 @@ from .planner_checks import (CONTEXT_WORDS, FARSIGHTED_MIN, FILLER, FRONT_DEPTH,
                              clear_path_check, count_check, either_side_check, exists_check, facing_check, far_check,
                              height_check, in_front_check, near_check, side_check, turning_check, view_check,
                              wall_check)
-from .planner_scope import EVERY, NONE, SOME, object_check, pair_check
+from .planner_scope import EVERY, NONE, SOME, WITHOUT, object_check, pair_check
 
 
 # --------------------------------------------------------------------------------------------------------
@@ -232,14 +232,14 @@ def _rule_distance(r: _Reader) -> None:
                 continue
             quant, spans = scope(r, subject, m.start())
             if kind == "far":
-                if quant == NONE:        # "no X at least d from Y": not read
+                if quant in (NONE, WITHOUT):     # "no X at least d from Y": not read
                     continue
                 check = far_check(subject.entity, ref.entity, quantity(m.group("q") or m.group("q2")), m.group())
             else:
                 dist = quantity(m.group("q")) if kind == "near" else NEAR_GAP
                 check = (near_check(subject.entity, ref.entity, dist, m.group()) if quant in (None, SOME) else
                          pair_check("far" if quant == NONE else "near", subject.entity, ref.entity,
-                                    quant, dist, m.group()))
+                                    quant, dist, m.group()))   # NONE: no pair within dist
             cover_all(r, spans)
             r.add(check, m.start(), m.end(), subject, ref)
 
@@ -319,6 +319,8 @@ def _rule_counts(r: _Reader) -> None:
         if obj is None or obj.start != m.end() or _read(r, m.start(), m.end()):
             continue
         n, mode = int(m.group("n")), quals.get(m.group("qual") or "", "plain")
+        if mode != "plain" and obj.used:     # "at least 3 chairs against a wall": a count of the chairs that
+            continue                         # meet the relation, not read (its words stay uncovered)
         lo, hi = {"min": (n, None), "more": (n + 1, None), "max": (0, n), "less": (0, max(n - 1, 0)),
                   "exact": (n, n), "plain": (n, None)}[mode]
         if mode == "plain":
@@ -357,7 +359,8 @@ def read_constraint(constraint: str, room: str = "bedroom") -> Plan:
     # objects a relation needs: a little credit for having them, so adding a missing one already pays
     counted = {e.key for c in r.plan.checks if c.kind in ("exists", "count") for e in c.entities}
     for c in list(r.plan.checks):
-        for e in c.entities if c.kind in NEEDS_OBJECTS else ():
+        needed = c.entities[1:] if c.scope == WITHOUT else () if c.scope == NONE else c.entities
+        for e in needed if c.kind in NEEDS_OBJECTS else ():
             if e.key not in counted:
                 implied = exists_check(e, f"needed by {c.key}")
                 implied.weight = IMPLIED_WEIGHT

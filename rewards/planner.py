@@ -35,9 +35,13 @@ import math
 import textwrap
 from string import Template
 
+import numpy as np
+import torch
+
 from .constraint_reader import read_constraint
 from .planner_checks import (Check, EMPHASIS_CAP, EMPHASIS_FACTOR, EMPTY_ROOM_KINDS, IMPLIED_WEIGHT, OBJECTS,
                              PRIMARY_WEIGHT, Param, Plan, SUPPORT_WEIGHT)
+from .planner_selfcheck import self_check
 from .proposal import ReflectionContext, RewardProposal
 
 
@@ -114,6 +118,21 @@ def render(plan: Plan, values: dict[str, float] | None = None) -> str:
                  "    total = (" + "\n             + ".join(terms) + ")\n"
                  f"    return total / ({total})\n")
     return "\n".join(lines)
+
+
+def run_program(code: str, plan: Plan, layouts) -> tuple[np.ndarray, dict[str, np.ndarray]]:
+    """A program of mine on layouts, in-process (the planner's own code, written just now): its reward and each
+    check's clean value, (n,) each."""
+    from iarcs_env.scene import SceneBatch
+    from .scene_api import Scene
+
+    namespace = {"math": math, "torch": torch}
+    exec(compile(code, "<planner program>", "exec"), namespace)
+    scene = Scene(SceneBatch.from_layouts(list(layouts), plan.room))
+    with torch.no_grad():
+        reward = namespace["reward"](scene).double().numpy()
+        parts = {c.key: namespace["clean"](namespace[f"check_{c.key}"](scene)).double().numpy() for c in plan.checks}
+    return reward, parts
 
 
 def program_constants(code: str) -> dict[str, float]:
@@ -202,6 +221,10 @@ class OfflinePlanner:
         plan = self.plan(room, constraint)
         values = {"PARTIAL_CREDIT": 0} if feedback else {}
         code = render(plan, values)
+        problems = self_check(plan, lambda layouts: run_program(code, plan, layouts))
+        if problems:
+            raise ValueError(f"the offline planner's self-check refused its program for {constraint!r}: "
+                             + "; ".join(problems) + ". Rephrase the request or use an LLM (--model)")
         notes = ""
         if feedback:
             notes = (f"Previous attempt failed: {feedback.strip()[:300]}. Wrote the conservative form: every "
@@ -373,7 +396,8 @@ class OfflinePlanner:
         heights, walls, a turning circle next to an object) and the existence of the objects a relation
         needs (has_bed, ...). Counts, named objects and the checks an emptier room satisfies keep theirs."""
         return [c for c in plan.checks
-                if (c.weight >= PRIMARY_WEIGHT and c.entities and c.kind not in EMPTY_ROOM_KINDS)
+                if (c.weight >= PRIMARY_WEIGHT and c.entities and c.kind not in EMPTY_ROOM_KINDS
+                    and c.scope not in ("none", "without"))
                 or (c.kind == "exists" and c.weight == IMPLIED_WEIGHT)]
 
     def _emphasise(self, plan: Plan, values: dict, notes: list[str]) -> str:

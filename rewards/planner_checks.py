@@ -78,7 +78,7 @@ will would of and to in on at for it its their there has have having which who w
 room rooms bedroom bedrooms livingroom living diningroom dining scene scenes layout setting space home
 house apartment positioned placed located arranged put position place person people someone user users
 i we my our me us want need needs please make create generate design furnished also both one them they
-stand stands standing kept keep
+stand stands standing kept keep do does
 """.split())
 
 #: Words understood only as context of a check kind (e.g. "robot grasping" explains a reach limit).
@@ -160,6 +160,9 @@ class Check:
     """Name of the threshold a curriculum relaxes for this check (None: no curriculum)."""
     start: int = 0
     """Where its phrase starts in the constraint (checks are listed in reading order)."""
+    scope: str = ""
+    """How a relation is quantified (:mod:`rewards.planner_scope`): ``some``, ``every`` or ``none`` (no subject
+    with the relation: an emptier room satisfies it); empty for the checks without a scope."""
 
 
 @dataclass

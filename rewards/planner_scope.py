@@ -21,8 +21,9 @@ FREE_SHARE = 0.95          # ... of which 95 % is free
 SMALL_ROOM = 12.0          # "a small bedroom": at most 12 m^2
 LARGE_ROOM = 16.0          # "a large / spacious bedroom": at least 16 m^2
 
-#: Quantifier readings of a relation between subjects (i) and references (j).
-SOME, EVERY, NONE = "some", "every", "none"
+#: Quantifier readings of a relation between subjects (i) and references (j); WITHOUT: "a reference without a
+#: subject in the relation" ("a desk without a chair in front of it").
+SOME, EVERY, NONE, WITHOUT = "some", "every", "none", "without"
 
 
 def _pair_score(kind: str) -> str:
@@ -67,8 +68,9 @@ def _params(kind: str, value: float) -> list[Param]:
 
 def pair_check(kind: str, subj: Entity, ref: Entity, quant: str, value: float, phrase: str) -> Check:
     """A relation with its scope: SOME (a subject and a reference with it), EVERY (every subject with some
-    reference; there is at least one subject) or NONE (no subject with any reference; "far" is always NONE of
-    "near"). ``value``: the distance (m), angle (degrees) or depth (m) of ``kind``."""
+    reference; there is at least one subject), NONE (no subject with any reference; "far" is always NONE of
+    "near") or WITHOUT (a reference with no subject in the relation). ``value``: the distance (m), angle (degrees)
+    or depth (m) of ``kind``."""
     head = f"    items, refs = {_objects(subj)}, {_objects(ref)}\n    pairs = scene.pair_mask(items, refs)\n"
     score = _pair_score(kind)
     what = _WORDS[kind].format(d=value, a=value)
@@ -82,6 +84,11 @@ def pair_check(kind: str, subj: Entity, ref: Entity, quant: str, value: float, p
     return has_any * (0.5 * scene.all_of(per_item, items) + 0.5 * scene.mean_of(per_item, items))
 """
         desc = f"every {subj.label} {what} a {ref.label} (and there is at least one)"
+    elif quant == WITHOUT:
+        tail = """    alone = (1.0 - ok).masked_fill(~pairs, 1.0).amin(dim=1)   # [b, j]: no subject in the relation to j
+    return scene.any_of(alone, refs)
+"""
+        desc = f"a {ref.label} without any {subj.label} {what} it"
     else:
         tail = """    fine = (1.0 - ok).masked_fill(~pairs, 1.0)            # each pair keeps out of the relation
     n_pairs = pairs.float().flatten(1).sum(dim=1).clamp(min=1.0)
@@ -94,8 +101,8 @@ def pair_check(kind: str, subj: Entity, ref: Entity, quant: str, value: float, p
         score = _pair_score("near")
     key = f"{subj.key}_{kind}_{ref.key}" + ("" if quant == SOME else f"_{quant}")
     params = _params(kind, value)
-    return Check(key, desc, head + score + tail, params, PRIMARY_WEIGHT, phrase, (subj, ref),
-                 "far" if kind == "far" or quant == NONE else kind, params[0].name)
+    return Check(key, desc, head + score + tail, params, PRIMARY_WEIGHT, phrase, (subj, ref), kind, params[0].name,
+                 scope=quant)
 
 
 def between_check(subj: Entity, a: Entity, b: Entity, phrase: str) -> Check:
@@ -146,15 +153,13 @@ def object_check(kind: str, subj: Entity, quant: str, value: float, phrase: str)
                    [Param("MIDDLE_RADIUS", value, "m: largest distance from the room's middle", relax=0.5),
                     Param("MIDDLE_SCALE", 0.3, "m: softness", kind="scale")],
                    f"with its centre within {value:g} m of the middle of the room"),
-        "centred_wall": ("scene.below(scene.back_to_wall(), $WALL_GAP, scale=$WALL_SCALE) * scene.below(("
-                         "scene.position[..., 0] * scene.forward[..., 1] - scene.position[..., 2] * "
-                         "scene.forward[..., 0]).abs(), $CENTRED_OFFSET, scale=$WALL_SCALE)",
+        "centred_wall": ("scene.below(scene.back_to_wall(), $WALL_GAP, scale=$WALL_SCALE) * "
+                         "scene.below(scene.wall_offset(), $CENTRED_OFFSET, scale=$WALL_SCALE)",
                          [Param("CENTRED_OFFSET", value, "m: centre's largest offset from the wall's middle",
                                 relax=0.3),
                           Param("WALL_GAP", 0.1, "m: largest gap between the back and the wall", relax=0.2),
                           Param("WALL_SCALE", 0.15, "m: softness", kind="scale")],
-                         f"against a wall and centred on it (within {value:g} m of its middle, as seen from the "
-                         f"room's middle)"),
+                         f"against a wall and centred on it (centre within {value:g} m of the wall's middle)"),
     }
     for zone in ("front", "sides", "around", "back"):
         tests[f"free_{zone}"] = (f"scene.above(scene.free_share($FREE_DEPTH, '{zone}'), $FREE_SHARE, "
@@ -172,11 +177,11 @@ def object_check(kind: str, subj: Entity, quant: str, value: float, phrase: str)
     elif quant == SOME:
         body += f"    return scene.any_of({values}, mask)\n"
         desc = f"a {subj.label} {what}"
-    else:
+    else:                    # NONE, WITHOUT
         body += f"    return scene.all_of(1.0 - {values}, mask)\n"
         desc = f"no {subj.label} {what}"
     key = f"{subj.key}_{kind}" + ("" if quant == EVERY else f"_{quant}")
-    return Check(key, desc, body, params, PRIMARY_WEIGHT, phrase, (subj,), kind, params[0].name)
+    return Check(key, desc, body, params, PRIMARY_WEIGHT, phrase, (subj,), kind, params[0].name, scope=quant)
 
 
 def free_area_check(size: float, square: bool, middle: bool, phrase: str) -> Check:

@@ -167,6 +167,13 @@ class Scene:
         return self._cached("back", lambda: rel.back_to_wall(b.translations, b.half_sizes, b.yaws, self._edges())
                             .to(b.translations.dtype))
 
+    def wall_offset(self) -> torch.Tensor:
+        """(B, N) distance (m) along the wall straight behind the object from that wall's middle to the object's
+        centre (0: centred on the wall behind it; inf when no wall is behind it)."""
+        b = self._batch
+        return self._cached("wall_offset", lambda: rel.wall_offset(b.translations, b.yaws, b.half_sizes, self._edges())
+                            .to(b.translations.dtype))
+
     def wall_angle(self) -> torch.Tensor:
         """(B, N) angle (rad, 0..pi/4) between the object's axes and the nearest wall direction of the floor
         (0: square to the walls; any multiple of 90 degrees counts, so a bed turned a quarter is square too)."""

@@ -112,19 +112,26 @@ def test_reward_commands_report_bad_input_clearly(tmp_path, capsys, monkeypatch)
 
 
 def test_a_request_whose_meaning_was_not_understood_is_refused_unless_allowed(tmp_path, capsys):
-    """The planner does not understand "away from": a program rewarding facing the bed would be the opposite of the
-    request, so the command refuses (exit 2) and says what to do; --allow-partial writes it, marked partial."""
-    request = "A bedroom where the desk faces away from the bed"
-    program = tmp_path / "away.py"
+    """The planner does not read a quantifier on the reference of "on the left of": a program rewarding a nightstand
+    left of some bed would ask less than the request, so the command refuses (exit 2) and says what to do;
+    --allow-partial writes it, marked partial."""
+    request = "A bedroom with a nightstand on the left of every bed"
+    program = tmp_path / "every.py"
     assert main(["reward", "synthesize", "--constraint", request, "--out", str(program)]) == 2
     err = capsys.readouterr().err
-    assert "did not understand 'away from'" in err and "--model" in err and "--allow-partial" in err
+    assert "did not understand 'every'" in err and "--model" in err and "--allow-partial" in err
     assert not program.exists()
     assert main(["reward", "synthesize", "--constraint", request, "--out", str(program), "--allow-partial"]) == 0
     assert "PARTIAL" in capsys.readouterr().out
     meta = json.loads(program.with_suffix(".json").read_text())
-    assert meta["partial"] is True and meta["not_understood"] == ["away from"]
-    assert "# PARTIAL: written without away from" in program.read_text()
+    assert meta["partial"] is True and meta["not_understood"] == ["every"]
+    assert "# PARTIAL: written without every" in program.read_text()
+    # the words it now reads: facing away is written, not refused
+    away = tmp_path / "away.py"
+    assert main(["reward", "synthesize", "--constraint", "A bedroom where the desk faces away from the bed",
+                 "--out", str(away)]) == 0
+    meta = json.loads(away.with_suffix(".json").read_text())
+    assert meta["partial"] is False and meta["not_understood"] == [] and "desk_away_bed" in away.read_text()
     # a word that does not change the meaning is reported, not refused
     assert main(["reward", "synthesize", "--constraint", "A cozy bedroom with a double bed",
                  "--out", str(tmp_path / "cozy.py")]) == 0
@@ -134,8 +141,8 @@ def test_a_request_whose_meaning_was_not_understood_is_refused_unless_allowed(tm
 def test_training_refuses_a_partial_program_unless_told(tmp_path):
     from agents.stage2 import TaskConfig, setup_task_reward
 
-    task = TaskConfig(constraint="A bedroom where no two pieces of furniture stand closer than 0.5 m", reflect_every=0)
-    with pytest.raises(ValueError, match=r"did not understand 'no', 'stand closer than 0.5 m'"):
+    task = TaskConfig(constraint="A bedroom where not every chair faces the desk", reflect_every=0)
+    with pytest.raises(ValueError, match=r"did not understand 'not'"):
         setup_task_reward(task, "bedroom", tmp_path / "run")
     reward, agent, memory, proposal = setup_task_reward(
         TaskConfig(constraint=task.constraint, reflect_every=0, allow_partial=True), "bedroom", tmp_path / "run2")
