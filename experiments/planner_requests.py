@@ -6,10 +6,10 @@ The checkers are written here from the request's words, over :class:`iarcs_env.s
 shapely only (no scene API, no relations module, no planner code), with the planner's documented readings of the
 words that have no number ("beside" = footprints within 0.5 m, "behind" = up to 0.9 m beyond the back and within
 the width + 0.1 m, "in the middle" = centre within 1 m of the middle of the floor's bounding box, "against a wall"
-= the boundary within 0.1 m straight behind the back edge's midpoint, "facing" = within 30 degrees, "facing away" = the other
-object more than 120 degrees from the facing direction, "a small bedroom" = at most 12 m^2, "spacious" = at least
-16 m^2, "free space" = a 0.8 m strip 95 % free). "every X ..." needs at least one X; "no X ..." holds in a room
-without X.
+= the boundary within 0.1 m straight behind the back edge's midpoint, "facing" = within 30 degrees, "facing away"
+= the other object more than 120 degrees from the facing direction, "a small bedroom" = at most 12 m^2,
+"spacious" = at least 16 m^2, "free space" = a 0.8 m strip 95 % free). "every X ..." needs at least one X; "no X
+..." holds in a room without X.
 
 Print the table (docs/results/planner_requests.md): ``python -m experiments.planner_requests``.
 """
@@ -23,7 +23,7 @@ from typing import Callable
 
 import numpy as np
 import shapely
-from shapely.geometry import Point, Polygon, box as shapely_box
+from shapely.geometry import Point, Polygon
 
 from iarcs_env.scene import Layout
 
@@ -189,7 +189,8 @@ REQUESTS: list[Request] = [
        lambda r: none(pairs(r.of("chair"), r.of(*BEDS)), lambda i, j: r.gap(i, j) <= 1.0)),
     _r("None of the nightstands within 0.3 m of the wardrobe", "negation", "every nightstand-wardrobe gap > 0.3 m",
        lambda r: none(pairs(r.of("nightstand"), r.of("wardrobe")), lambda i, j: r.gap(i, j) <= 0.3)),
-    _r("The bed is not against a wall", "negation", "no bed against a wall (the boundary within 0.1 m straight behind its back)",
+    _r("The bed is not against a wall", "negation",
+       "no bed against a wall (the boundary within 0.1 m straight behind its back)",
        lambda r: not any(r.against_wall(i) for i in r.of(*BEDS))),
     _r("The wardrobe should never face the bed", "negation", "no wardrobe within 30 deg of facing a bed",
        lambda r: none(pairs(r.of("wardrobe"), r.of(*BEDS)), lambda i, j: r.angle(i, j) <= 30)),

@@ -89,8 +89,8 @@ def _rule_free_space(r) -> None:
              "on both sides of": "sides", "on either side of": "sides", "around": "around", "all around": "around"}
     where = "|".join(sorted(zones, key=len, reverse=True))
     free = r"(?:free|clear|open|empty|unobstructed)"
-    strip = [rf"\b(?:(?:at least )?(?P<q>{QTY}) (?:of )?)?{free} (?:floor )?(?:space|area|floor|room)(?: of (?P<q2>{QTY}))? "
-             rf"(?P<where>{where}) ",
+    strip = [rf"\b(?:(?:at least )?(?P<q>{QTY}) (?:of )?)?{free} (?:floor )?(?:space|area|floor|room)"
+             rf"(?: of (?P<q2>{QTY}))? (?P<where>{where}) ",
              rf"\b(?:the )?(?:space|area|floor) (?P<where>{where}) (?P<obj>[a-z ]+?) (?:is |stays |kept |remains )?"
              rf"(?:free|clear|open|empty|unobstructed)\b"]
     for k, pattern in enumerate(strip):

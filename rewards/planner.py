@@ -7,17 +7,25 @@ module writes the program and reflects):
 * **objects** ("night tables", "bedside table", "TV", "desk", "support surfaces", ...) map onto the
   Scene API's classes and groups (:data:`rewards.planner_checks.OBJECTS`);
 * **quantities** ("1.0 m", "90 cm", "30 degrees", "2 night tables", "two chairs", "at least 3 ...");
-* **relations and requirements** ("on either side of", "left/right of", "in front of", "facing",
-  "view ... from", "within a 1.0 m reach", "against the wall", "parallel to the walls", "within 1 m of",
-  "wheelchair-accessible", "turning circle", "clear path", "study zone", "farsighted" / "4K" for viewing
-  distances, ...).
+* **relations and requirements** ("on either side of", "left/right of", "in front of", "behind", "facing",
+  "facing away from", "turned toward", "between A and B", "view ... from", "within a 1.0 m reach", "against the
+  wall", "centred on a wall", "in the middle of the room", "away from the walls", "parallel to the walls", "within
+  1 m of", "A and B at least 2 m apart", "no 2 pieces of furniture closer than 0.3 m", "1 m of free space in front
+  of", "a free 2 m square", "a small / spacious bedroom", "wheelchair-accessible", "turning circle", "clear path",
+  "study zone", "farsighted" / "4K" for viewing distances, ...);
+* **scope** (:mod:`rewards.constraint_grammar`): "every / each / all / any X" (every X, and at least one), "some
+  / a X", "no X", "none of the X", "X is not / never ...", "a Y without an X ... it". Meaning-changing words no rule
+  reads (a quantifier on a relation's reference, "not every", "only", "nothing") stay in ``not_understood``, so the
+  command line refuses the request (:func:`rewards.proposal.meaning_lost`).
 
 Each recognised phrase becomes a :class:`Check`: a description, the body of a small function written
 against :mod:`rewards.scene_api` only, and its thresholds as named module-level UPPER_CASE constants.
 Every check returns a *soft* satisfaction in [0, 1] (1 when it holds, decaying smoothly with the
 distance to holding), so the reward gives partial credit that RL can climb. The program is the weighted
 mean of the checks. Words it cannot map are reported in ``not_understood`` and in the reasoning, never
-guessed; a constraint with nothing understood raises :class:`ValueError`.
+guessed; a constraint with nothing understood raises :class:`ValueError`. Every program passes a self-check
+before it is returned (:mod:`rewards.planner_selfcheck`: hand-placed rooms that satisfy and that violate each
+check must score the right way round), else :class:`ValueError`.
 
 :meth:`OfflinePlanner.reflect` reads the task success trend: a statistically failing reward gets a
 curriculum (the main threshold relaxed, then tightened stage by stage), then a simplification (softer,
@@ -210,9 +218,11 @@ class OfflinePlanner:
                 f"the offline planner could not map any part of {constraint!r} onto a measurable check "
                 f"(not understood: {', '.join(plan.not_understood) or 'everything'}). It knows objects such as "
                 f"{', '.join(sorted({e.label for e in OBJECTS.values()}))} and requirements such as counts, "
-                f"heights ('within a 1.0 m reach'), 'on either side of', 'left/right of', 'in front of', "
-                f"'facing', 'view ... from', 'within X m of', 'against the wall', 'parallel to the walls', "
-                f"'wheelchair-accessible', 'turning circle', 'clear path', 'study zone'.")
+                f"heights ('within a 1.0 m reach'), 'on either side of', 'left/right of', 'in front of', 'behind', "
+                f"'facing', 'facing away from', 'between', 'view ... from', 'within X m of', 'at least X m apart', "
+                f"'against the wall', 'centred on a wall', 'in the middle of the room', 'parallel to the walls', "
+                f"'free space in front of', 'a free 2 m square', 'a small bedroom', 'wheelchair-accessible', "
+                f"'turning circle', 'clear path', 'study zone'.")
         return plan
 
     def synthesize(self, room: str, constraint: str, feedback: str | None = None) -> RewardProposal:
@@ -326,6 +336,11 @@ class OfflinePlanner:
         code = old.code
         if action != "keep":
             code = render(plan, values)
+            problems = self_check(plan, lambda layouts: run_program(code, plan, layouts))
+            if problems:            # the revision would rank the plan's own example rooms the wrong way round
+                notes.append(f"The revised program ({action}) failed the self-check ({'; '.join(problems)}): keep "
+                             f"the program in use.")
+                return RewardProposal(**{**old.to_dict(), "notes": " ".join(notes)})
             if curriculum:
                 curriculum["changed_at"] = len(success)
             if code == old.code:

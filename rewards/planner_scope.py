@@ -85,7 +85,7 @@ def pair_check(kind: str, subj: Entity, ref: Entity, quant: str, value: float, p
 """
         desc = f"every {subj.label} {what} a {ref.label} (and there is at least one)"
     elif quant == WITHOUT:
-        tail = """    alone = (1.0 - ok).masked_fill(~pairs, 1.0).amin(dim=1)   # [b, j]: no subject in the relation to j
+        tail = """    alone = (1.0 - ok).masked_fill(~pairs, 1.0).amin(dim=1)   # [b, j]: no subject in relation to j
     return scene.any_of(alone, refs)
 """
         desc = f"a {ref.label} without any {subj.label} {what} it"
@@ -134,6 +134,9 @@ def _every(values: str) -> str:
 """
 
 
+_ZONE_WORDS = {"front": "in front of it", "back": "behind it", "sides": "on both sides", "around": "all around"}
+
+
 def object_check(kind: str, subj: Entity, quant: str, value: float, phrase: str) -> Check:
     """A requirement on each object of ``subj`` alone, for EVERY one (and at least one), SOME one, or NONE:
     ``wall`` (back within ``value`` m of a wall), ``wall_far`` (footprint at least ``value`` m from every wall),
@@ -168,7 +171,7 @@ def object_check(kind: str, subj: Entity, quant: str, value: float, phrase: str)
                                   Param("FREE_SHARE", FREE_SHARE, "share of the strip that must be free",
                                         relax=-0.15),
                                   Param("FREE_SCALE", 0.2, "softness (share)", kind="scale")],
-                                 f"with a free strip {value:g} m deep {dict(front='in front of it', back='behind it', sides='on both sides', around='all around')[zone]}")
+                                 f"with a free strip {value:g} m deep {_ZONE_WORDS[zone]}")
     values, params, what = tests[kind]
     body = f"    mask = {_objects(subj)}\n"
     if quant == EVERY:

@@ -57,14 +57,16 @@ def _relation(check: Check, s: str, r: str, room: str) -> tuple[list[tuple], lis
     if kind in ("in_front", "behind"):
         depth = _value(check, "DEPTH", _value(check, "FRONT_DEPTH", 0.9))
         sign = 1 if kind == "in_front" else -1
-        return [ref, _obj(s, 4.0, 3.0 + sign * (hd + min(depth, 1.2) / 2))], [ref, _obj(s, 4.0, 3.0 - sign * (hd + 1.0))]
+        inside = _obj(s, 4.0, 3.0 + sign * (hd + min(depth, 1.2) / 2))
+        return [ref, inside], [ref, _obj(s, 4.0, 3.0 - sign * (hd + 1.0))]
     if kind in ("side", "either_side"):
         bed = _obj(r, 4.0, 3.0, (0.9, 0.4, 1.0))
         left, right = _obj(s, 4.0 + 0.9 + 0.3, 2.5), _obj(s, 4.0 - 0.9 - 0.3, 2.5)
         far_l, far_r = _obj(s, 4.0 + 2.8, 2.5), _obj(s, 4.0 - 2.8, 2.5)
         if kind == "either_side":
             return [bed, left, right], [bed, far_l, far_r]
-        return ([bed, left], [bed, right]) if check.key.split("_of_")[0].endswith("left") else ([bed, right], [bed, left])
+        wanted_left = check.key.split("_of_")[0].endswith("left")
+        return ([bed, left], [bed, right]) if wanted_left else ([bed, right], [bed, left])
     if kind == "view":
         lo, hi = _value(check, "VIEW_MIN", 1.5), _value(check, "VIEW_MAX", 3.5)
         viewer = _obj(r, 4.0, 0.8)
@@ -140,7 +142,8 @@ def examples(check: Check, room: str) -> tuple[list[Layout], list[Layout]] | Non
         lo, hi = _value(check, "AREA_MIN", 0.0), _value(check, "AREA_MAX", 1e4)
         good = (lo + min(hi, lo + 10)) / 2 if lo > 0 else hi - 2
         bad = lo - 5 if lo > 6 else hi + 8
-        return [_layout(room, [], math.sqrt(good), math.sqrt(good))], [_layout(room, [], math.sqrt(bad), math.sqrt(bad))]
+        good, bad = math.sqrt(good), math.sqrt(bad)
+        return [_layout(room, [], good, good)], [_layout(room, [], bad, bad)]
     if kind == "turning":
         narrow = _value(check, "TURN_DIAMETER", 1.5) * 0.6
         near = [_obj(labels[0], 1.0, narrow / 2, (0.3, 0.4, 0.2))] if labels else []

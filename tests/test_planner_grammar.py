@@ -149,7 +149,8 @@ def test_self_check_refuses_a_program_that_ranks_its_rooms_the_wrong_way(request
 def test_a_self_check_refusal_through_the_command_line(tmp_path, capsys, monkeypatch):
     import rewards.planner as planner
 
-    monkeypatch.setattr(planner, "read_constraint", lambda constraint, room: _misread(read_constraint(constraint, room)))
+    monkeypatch.setattr(planner, "read_constraint",
+                        lambda constraint, room: _misread(read_constraint(constraint, room)))
     program = tmp_path / "away.py"
     assert main(["reward", "synthesize", "--constraint", "The desk faces away from the bed",
                  "--out", str(program)]) == 2
