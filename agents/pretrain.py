@@ -58,6 +58,11 @@ class PretrainConfig:
     """Seed of the procedural generator (and of the validation split)."""
     val_scenes: int = 256
     """Scenes held out to measure a validation loss (0: none)."""
+    extra_datasets: list = field(default_factory=list)
+    """Layout files (or ATISS folders) trained on beside ``dataset``, each ``{dataset: PATH, weight: W}``: a batch
+    draws its rooms from ``dataset`` with weight 1 and from each extra with its weight (uniformly within each),
+    e.g. the rooms of ``iarcs augment``. They join the training rooms only; statistics and validation stay
+    ``dataset``'s."""
     preset: str = "small"
     """Denoiser size preset: small (CPU) or paper (8 layers, width 512)."""
     model: dict = field(default_factory=dict)
@@ -194,6 +199,12 @@ class PretrainConfig:
             raise ValueError(f"max_timestep must be in [0, {num_t}] (0: all), got {self.max_timestep}")
         if not 0 <= self.ema_decay < 1:
             raise ValueError(f"ema_decay must be in [0, 1), got {self.ema_decay}")
+        for k, extra in enumerate(self.extra_datasets):
+            weight = extra.get("weight") if isinstance(extra, dict) else None
+            if (not isinstance(extra, dict) or set(extra) != {"dataset", "weight"}
+                    or not isinstance(extra["dataset"], str) or isinstance(weight, bool)
+                    or not isinstance(weight, (int, float)) or not 0 < weight < float("inf")):
+                raise ValueError(f"extra_datasets[{k}] must be {{dataset: PATH, weight: W}} with W > 0, got {extra!r}")
 
     def denoiser_config(self) -> DenoiserConfig:
         return DenoiserConfig.from_preset(self.preset, **dict(self.model))
@@ -322,7 +333,10 @@ def draw_batch(data: SceneTensors, cfg: PretrainConfig, spec, stats: DatasetStat
     """All of a step's randomness, drawn from ``generator`` on the data's device in one order: the rooms, their
     rotations and slot permutations, which conditions are dropped, the timesteps and the noise."""
     device = data.labels.device
-    idx = torch.randint(0, len(data), (size,), generator=generator, device=device)
+    if data.draw_weights is None:
+        idx = torch.randint(0, len(data), (size,), generator=generator, device=device)
+    else:
+        idx = torch.multinomial(data.draw_weights, size, replacement=True, generator=generator)
     metric = data.batch(idx, generator, rotate=cfg.rotation_augment, permute=cfg.permutation_augment)
     x0, floor = encode_batch(spec, stats, *metric)
     if cfg.cond_drop_prob > 0:

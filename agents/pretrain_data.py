@@ -8,7 +8,7 @@ import json
 import math
 import os
 import time
-from dataclasses import dataclass, fields
+from dataclasses import dataclass, fields, replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Callable, Sequence
 
@@ -52,6 +52,7 @@ class SceneTensors:
     yaws: torch.Tensor  # (S, N)
     floor_points: torch.Tensor  # (S, P, 4): x, z, nx, nz in metres
     extents: torch.Tensor  # (S, 2): the floors' half-extents (x, z) in metres
+    draw_weights: torch.Tensor | None = None  # (S,): each room's chance in a batch (None: all alike)
 
     @classmethod
     def from_layouts(cls, layouts: Sequence[Layout], num_slots: int, num_points: int = 256,
@@ -71,7 +72,22 @@ class SceneTensors:
 
     def to(self, device) -> "SceneTensors":
         """The same tensors on ``device`` (the training device: batches are then drawn and augmented there)."""
-        return SceneTensors(*(getattr(self, f.name).to(device) for f in fields(self)))
+        values = (getattr(self, f.name) for f in fields(self))
+        return SceneTensors(*(None if v is None else v.to(device) for v in values))
+
+    @staticmethod
+    def room_fields() -> list[str]:
+        """The per-room tensors: all but ``draw_weights``, which only a mix of datasets has."""
+        return [f.name for f in fields(SceneTensors) if f.name != "draw_weights"]
+
+    @staticmethod
+    def mixed(parts: Sequence[tuple["SceneTensors", float]]) -> "SceneTensors":
+        """The rooms of ``parts`` together, a batch drawing from each part its weight's share of the rooms
+        (uniformly within a part)."""
+        names = SceneTensors.room_fields()
+        weights = torch.cat([torch.full((len(part),), weight / len(part)) for part, weight in parts])
+        return SceneTensors(*(torch.cat([getattr(part, n) for part, _ in parts]) for n in names),
+                            weights / weights.sum())
 
     def batch(self, idx: torch.Tensor, generator: torch.Generator | None = None, rotate: bool = False,
               permute: bool = False):
@@ -207,14 +223,24 @@ def training_data(cfg: "PretrainConfig", layouts: Sequence[Layout] | None = None
 
     spec = get_room(cfg.room)
     if layouts is None and resolve_dataset(cfg.dataset).lower() in PROCEDURAL_NAMES:
-        return procedural_training_data(cfg, log, progress)
-    if layouts is None:
-        layouts = load_training_layouts(cfg, log)
-    train_layouts, val_layouts = training_split(layouts, cfg)
-    stats = stats_for_training(train_layouts, spec.name, cfg.rotation_augment) if with_stats else None
-    data = SceneTensors.from_layouts(train_layouts, spec.max_objects, FLOOR_POINTS, cfg.canonical_order)
-    val = SceneTensors.from_layouts(val_layouts, spec.max_objects, FLOOR_POINTS, cfg.canonical_order) \
-        if val_layouts else None
+        data, val, stats = procedural_training_data(cfg, log, progress)
+    else:
+        if layouts is None:
+            layouts = load_training_layouts(cfg, log)
+        train_layouts, val_layouts = training_split(layouts, cfg)
+        stats = stats_for_training(train_layouts, spec.name, cfg.rotation_augment) if with_stats else None
+        data = SceneTensors.from_layouts(train_layouts, spec.max_objects, FLOOR_POINTS, cfg.canonical_order)
+        val = SceneTensors.from_layouts(val_layouts, spec.max_objects, FLOOR_POINTS, cfg.canonical_order) \
+            if val_layouts else None
+    if cfg.extra_datasets:
+        parts = [(data, 1.0)]
+        for extra in cfg.extra_datasets:
+            rooms = load_training_layouts(replace(cfg, dataset=extra["dataset"]), log)
+            parts.append((SceneTensors.from_layouts(rooms, spec.max_objects, FLOOR_POINTS, cfg.canonical_order),
+                          float(extra["weight"])))
+            log(f"{len(rooms)} rooms of {extra['dataset']} at weight {extra['weight']:g} beside {len(data)} of "
+                f"{cfg.dataset} (weight 1)")
+        data = SceneTensors.mixed(parts)
     return data, val, stats
 
 
@@ -292,7 +318,7 @@ def _build(cfg: "PretrainConfig", log: Callable[[str], None], progress: bool):
         log(f"dropped {dropped} of {n} rooms with more than {spec.max_objects} objects")
     if not layouts:
         raise ValueError(f"{cfg.dataset}: no {spec.name} rooms with at most {spec.max_objects} objects")
-    names = [f.name for f in fields(SceneTensors)]
+    names = SceneTensors.room_fields()
     stacked = {name: np.concatenate([a[name] for a in arrays]) for name in names}
     train_idx, val_idx = split_indices(len(layouts), cfg)
     rot = np.concatenate(rotated)[train_idx] if cfg.rotation_augment else None
@@ -310,7 +336,7 @@ def _chunk_data(rooms: list[Layout], num_slots: int, canonical_order: bool, rota
     if not kept:
         return [], None, None, len(rooms)
     t = SceneTensors.from_layouts(kept, num_slots, FLOOR_POINTS, canonical_order)
-    arrays = {f.name: getattr(t, f.name).numpy() for f in fields(t)}
+    arrays = {name: getattr(t, name).numpy() for name in t.room_fields()}
     return kept, arrays, rotated_translation_bounds(kept) if rotation else None, len(rooms) - len(kept)
 
 
@@ -319,7 +345,7 @@ def _pack(t: SceneTensors | None) -> dict | None:
     axis-aligned walls' -1, 0, 1: a quarter less file)."""
     if t is None:
         return None
-    out = {f.name: getattr(t, f.name) for f in fields(t)}
+    out = {name: getattr(t, name) for name in t.room_fields()}
     normals = t.floor_points[..., 2:]
     if torch.equal(normals.half().float().view(torch.int32), normals.view(torch.int32)):
         out["floor_points"] = t.floor_points[..., :2].contiguous()
@@ -331,10 +357,10 @@ def _unpack(d: dict) -> SceneTensors:
     d = dict(d)
     if "floor_normals_half" in d:
         d["floor_points"] = torch.cat([d["floor_points"], d.pop("floor_normals_half").float()], -1)
-    t = SceneTensors(**{f.name: d.pop(f.name) for f in fields(SceneTensors)})
+    t = SceneTensors(**{name: d.pop(name) for name in SceneTensors.room_fields()})
     if d:
         raise ValueError(f"unknown entries {sorted(d)}")
-    rows = {f.name: getattr(t, f.name).shape[0] for f in fields(t)}
+    rows = {name: getattr(t, name).shape[0] for name in t.room_fields()}
     if len(set(rows.values())) != 1:
         raise ValueError(f"tensors of different lengths {rows}")
     return t

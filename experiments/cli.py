@@ -21,6 +21,7 @@ COMMAND_MODULES = [
     "experiments.commands.evaluate",
     "experiments.commands.compare",
     "experiments.commands.prior",
+    "experiments.commands.augment",
     "experiments.commands.reward",
     "experiments.commands.generate",
     "experiments.commands.info",

@@ -90,6 +90,38 @@ def cmd_pretrain(args) -> int:
     return 0
 
 
+def load_sampler(checkpoint: str | None, room: str):
+    """(prior, policy or None) that ``checkpoint`` names for sampling ``room``: a prior file, a LoRA adapter folder
+    of the shipped prior (peft format), an ``iarcs train`` run folder, or None for the shipped prior. With an
+    adapter, sample through ``policy.eps`` (its reference's on the features the adapter leaves)."""
+    from experiments.cli import CLIError
+    from agents.denoiser import ScenePrior
+
+    policy = None
+    if checkpoint and (Path(checkpoint) / "adapter_config.json").exists():
+        from agents.policy import DiffusionPolicy
+
+        policy = DiffusionPolicy(ScenePrior.load_default(room), adapter="scratch")
+        policy.load_adapter(checkpoint, "sampled")
+    elif checkpoint and Path(checkpoint).is_dir():
+        from agents.train import load_trained_policy
+
+        policy, _ = load_trained_policy(checkpoint)
+    if policy is not None:
+        prior = policy.prior
+    elif checkpoint:
+        prior = ScenePrior.load(checkpoint)
+    else:
+        try:
+            prior = ScenePrior.load_default(room)
+        except FileNotFoundError as err:
+            raise CLIError(str(err)) from None
+    if prior.spec.name != room:
+        raise CLIError(f"{checkpoint or 'the prior'} is a {prior.spec.name} prior but --room is {room}; "
+                       f"pass --room {prior.spec.name} or a {room} checkpoint")
+    return prior, policy
+
+
 def cmd_sample(args) -> int:
     import numpy as np
     import torch
@@ -126,28 +158,7 @@ def cmd_sample(args) -> int:
             raise CLIError(f"--satisfying {task.name} is a {task.room} task but --room is {spec.name}")
     device = resolve_device(args.device or "auto")
 
-    policy = None  # with an adapter: sample through the policy's eps (its reference's on the features it leaves)
-    if args.checkpoint and (Path(args.checkpoint) / "adapter_config.json").exists():
-        from agents.policy import DiffusionPolicy
-
-        policy = DiffusionPolicy(ScenePrior.load_default(spec.name), adapter="scratch")
-        policy.load_adapter(args.checkpoint, "sampled")  # the shipped prior with this LoRA adapter (peft folder)
-    elif args.checkpoint and Path(args.checkpoint).is_dir():
-        from agents.train import load_trained_policy
-
-        policy, _ = load_trained_policy(args.checkpoint)  # a run folder: its prior with its adapter
-    if policy is not None:
-        prior = policy.prior
-    elif args.checkpoint:
-        prior = ScenePrior.load(args.checkpoint)
-    else:
-        try:
-            prior = ScenePrior.load_default(spec.name)
-        except FileNotFoundError as err:
-            raise CLIError(str(err)) from None
-    if prior.spec.name != spec.name:
-        raise CLIError(f"{args.checkpoint or 'the prior'} is a {prior.spec.name} prior but --room is {spec.name}; "
-                       f"pass --room {prior.spec.name} or a {spec.name} checkpoint")
+    prior, policy = load_sampler(args.checkpoint, spec.name)
     prior.to(device)
 
     if args.floors:
