@@ -10,9 +10,9 @@ from __future__ import annotations
 import re
 
 from .planner_checks import facing_check, near_check
-from .planner_scope import (AWAY_ANGLE, BEHIND_DEPTH, CENTRED_OFFSET, EVERY, FREE_DEPTH, LARGE_ROOM, MIDDLE_RADIUS,
-                            NONE, SMALL_ROOM, SOME, WALL_AWAY, WITHOUT, between_check, free_area_check, object_check,
-                            pair_check, room_size_check)
+from .planner_scope import (AWAY_ANGLE, BEHIND_DEPTH, CENTRED_OFFSET, EVERY, FREE_AREA, FREE_DEPTH, LARGE_ROOM,
+                            MIDDLE_RADIUS, NONE, SMALL_ROOM, SOME, WALL_AWAY, WITHOUT, between_check, free_area_check,
+                            object_check, pair_check, room_size_check)
 
 _NUM = r"\d+(?:\.\d+)?"
 _UNIT = r"(?:m|cm|mm|meters?|metres?|centimeters?|centimetres?|millimeters?|millimetres?|ft|feet|foot|degrees?|deg)"
@@ -89,8 +89,8 @@ def _rule_free_space(r) -> None:
              "on both sides of": "sides", "on either side of": "sides", "around": "around", "all around": "around"}
     where = "|".join(sorted(zones, key=len, reverse=True))
     free = r"(?:free|clear|open|empty|unobstructed)"
-    strip = [rf"\b(?:(?:at least )?(?P<q>{QTY}) (?:of )?)?{free} (?:floor )?(?:space|area|floor|room)"
-             rf"(?: of (?P<q2>{QTY}))? (?P<where>{where}) ",
+    strip = [rf"\b(?:(?:at least )?(?P<q>{QTY}) (?:of )?)?(?:{free} (?:floor )?(?:space|area|floor|room)|"
+             rf"(?:free )?clearance)(?: of (?P<q2>{QTY}))? (?P<where>{where}) ",
              rf"\b(?:the )?(?:space|area|floor) (?P<where>{where}) (?P<obj>[a-z ]+?) (?:is |stays |kept |remains )?"
              rf"(?:free|clear|open|empty|unobstructed)\b"]
     for k, pattern in enumerate(strip):
@@ -111,8 +111,11 @@ def _rule_free_space(r) -> None:
     for m in re.finditer(area, r.text):
         q = m.group("q") or m.group("qa") or m.group("q3")
         q2 = m.group("q2") or m.group("qa2") or m.group("q4")
-        if q is None or any(r.covered[k] for k, (s, e, _) in enumerate(r.words) if s >= m.start() and e <= m.end()):
+        if any(r.covered[k] for k, (s, e, _) in enumerate(r.words) if s >= m.start() and e <= m.end()):
             continue
+        if q is None and not (m.group("mid") or m.group("shape") in ("square", "circle")):
+            continue                   # "free space" alone: not a size
+        q = q or f"{FREE_AREA} m"
         if q2 is not None and quantity(q2) != quantity(q):
             continue                   # a rectangle: not read, its words stay uncovered
         square = m.group("shape") == "square" or q2 is not None

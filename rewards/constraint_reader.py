@@ -21,6 +21,11 @@ from .planner_scope import EVERY, NONE, SOME, WITHOUT, object_check, pair_check
 # Reading the constraint
 # --------------------------------------------------------------------------------------------------------
 
+#: Words that may stand between a relation and the object it names ("facing the bed", "next to every bed").
+_DETERMINERS = re.compile(r" ?(?:(?:the|a|an|its|their|my|our|this|that|these|those|any|every|each|all|some|both|2|"
+                          r"of|one) )*")
+
+
 @dataclass
 class _Mention:
     start: int
@@ -77,12 +82,14 @@ class _Reader:
         return cands[0] if cands else None
 
     def reference_after(self, pos: int, subject: _Mention | None) -> _Mention | None:
-        """The object named after a relation; ``it``/``them`` refer back to the object before the subject."""
+        """The object named right after a relation (only determiners between); ``it``/``them`` refer back to the
+        object before the subject."""
         rest = self.text[pos:].lstrip()
         if re.match(r"(?:it|them)\b", rest) and subject is not None:
             self.cover(pos, pos + len(self.text[pos:]) - len(rest) + 4)
             return self.before(subject.start, exclude=subject.entity)
-        return self.after(pos)
+        words = _DETERMINERS.match(self.text, pos)
+        return next((m for m in self.mentions if m.start == words.end()), None)
 
     def add(self, check: Check, start: int, end: int, *mentions: _Mention | None, meaning: str = "") -> None:
         for m in mentions:
@@ -252,7 +259,8 @@ def _rule_relations(r: _Reader) -> None:
         (r"\b(?:on |to )?(?:the )?right(?: hand)?(?: side)? of\b", "right"),
         (r"\bin front of\b", "in_front"),
         (r"\bfac(?:ing|es|e)(?! away)(?: towards?| to)?\b", "facing"),
-        (r"\b(?:against|along|touching|flush with|backed (?:up )?against) (?:the |a |one )?walls?\b", "wall"),
+        (r"\b(?:against|along|touching|flush with|backed (?:up )?against|with (?:its|their) backs? (?:to|against)) "
+         r"(?:the |a |one )?walls?\b", "wall"),
         (r"\b(?:parallel (?:to|with)|aligned (?:to|with)|square (?:to|with)|straight (?:to|with)) (?:the |a |its )?"
          r"walls?\b", "aligned"),
     ]

@@ -18,6 +18,7 @@ MIDDLE_RADIUS = 1.0        # "in the middle of the room": centre within 1 m of t
 CENTRED_OFFSET = 0.3       # "centred on a wall": centre within 0.3 m of the wall's middle, along the wall
 FREE_DEPTH = 0.8           # "free space in front of / beside / around": a 0.8 m strip
 FREE_SHARE = 0.95          # ... of which 95 % is free
+FREE_AREA = 1.5            # "an open area in the middle of the room": a free circle 1.5 m across
 SMALL_ROOM = 12.0          # "a small bedroom": at most 12 m^2
 LARGE_ROOM = 16.0          # "a large / spacious bedroom": at least 16 m^2
 
