@@ -12,7 +12,7 @@ import trimesh
 from shapely.geometry import Point, Polygon
 
 from experiments.cli import main
-from iarcs_env.datasets import load_layouts, save_layouts
+from iarcs_env.datasets import save_layouts
 from iarcs_env.datasets.procedural import generate_layouts
 from iarcs_env.floorplan import FloorPlan
 from iarcs_env.scene import Layout
