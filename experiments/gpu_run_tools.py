@@ -86,23 +86,20 @@ def figures(samples: str, reference: str) -> dict:
 
 
 def bed_ablation(prior_path: str, reference: str, device: str, timesteps=(50, 100, 200)) -> dict:
-    """benchmarks/bed_ablation.py's figures for the prior on the reference rooms (one bed, a nightstand)."""
-    import importlib.util
-
+    """:func:`agents.bed_ablation.bed_ablation`'s figures for the prior on the reference rooms (one bed, a
+    nightstand)."""
     import torch
 
+    from agents.bed_ablation import bed_ablation as measure
     from agents.config import resolve_device
     from agents.denoiser import ScenePrior
     from iarcs_env.datasets import load_layouts
 
-    spec = importlib.util.spec_from_file_location("bed_ablation_script", ROOT / "benchmarks" / "bed_ablation.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)  # a file: `benchmarks` may be torchrl's package of that name
     torch.set_num_threads(max(1, min(8, torch.get_num_threads())))
     prior = ScenePrior.load(prior_path).to(resolve_device(device))
     rooms = [lay for lay in load_layouts(reference, "bedroom") if len(lay) <= prior.num_slots]
     return {"rooms": len(rooms), "timesteps": list(timesteps),
-            "figures": {str(t): f for t, f in module.bed_ablation(prior, rooms, timesteps).items()}}
+            "figures": {str(t): f for t, f in measure(prior, rooms, timesteps).items()}}
 
 
 # ------------------------------------------------------------------------------------------------------------
@@ -473,7 +470,7 @@ def markdown_report(work: Path) -> str:
         L += [""]
     beds = {n: ev[n].get("bed_ablation") for n in cols if ev[n].get("bed_ablation")}
     if beds:
-        L += ["Bed ablation (benchmarks/bed_ablation.py on these floors' rooms with one bed and a nightstand: rooms noised "
+        L += ["Bed ablation (agents/bed_ablation.py on these floors' rooms with one bed and a nightstand: rooms noised "
               "to t and restored in one step with and without the bed; medians in m):", "",
               "| prior | t | nightstands kept | error with the bed | error, bed removed | moved by removing the bed | "
               "out from the bed's side (quartiles): truth / with bed / without |", "|---|---:|---|---:|---:|---:|---|"]

@@ -44,4 +44,4 @@ for name, lays in (("prior", base), ("stage 1", run)):
 PY
 # what the adapter added or removed, class by class (beds are the class most at risk), first seed
 FIRST=${SEEDS%% *}
-$PY benchmarks/class_counts.py "prior=$OUT/base_s$FIRST.json" "stage 1=$OUT/stage1_s$FIRST.json" --out-of-bound --sizes 0.1
+$PY research/class_counts.py "prior=$OUT/base_s$FIRST.json" "stage 1=$OUT/stage1_s$FIRST.json" --out-of-bound --sizes 0.1

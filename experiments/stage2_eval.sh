@@ -56,7 +56,7 @@ PY
 # what each stage added or removed, class by class (a task can be passed by emptying the room)
 COUNTS=("prior=$OUT/prior.json" "stage 1=$OUT/stage1.json" "stage 2=$OUT/stage2.json")
 [ -f "$OUT/real_subset.json" ] && COUNTS+=("real (satisfying)=$OUT/real_subset.json")
-$PY benchmarks/class_counts.py "${COUNTS[@]}" --sizes 0.1
+$PY research/class_counts.py "${COUNTS[@]}" --sizes 0.1
 # stage 2 against stage 1, pooled over the sampling seeds (seed 0's reports are the ones above)
 SEEDS=${SEEDS:-0 1 2 3}
 STAGE1_REPORTS=(); STAGE2_REPORTS=()

@@ -1,7 +1,7 @@
 """Objects per room, class by class, of scene files side by side: what a training run added or removed
 (a bedroom without beds, rooms filled with pendant lamps) that the physical metrics do not show.
 
-    .venv/bin/python benchmarks/class_counts.py prior=out/eval/X/prior.json stage2=out/eval/X/stage2.json
+    .venv/bin/python research/class_counts.py prior=out/eval/X/prior.json stage2=out/eval/X/stage2.json
 
 Each argument is ``NAME=FILE`` (or a file, named by its stem): a neutral-JSON scene file of one room type;
 ``NAME=FILE,FILE,...`` pools several (e.g. one per sampling seed) into one column.

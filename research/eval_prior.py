@@ -1,10 +1,10 @@
 """Quality of a scene prior against its training data and against real rooms, sampled on the same floors.
 
-Run as a script (not an import: torchrl installs a site-packages package called ``benchmarks``)::
+Run as a script::
 
-    .venv/bin/python benchmarks/eval_prior.py --checkpoint agents/checkpoints/bedroom_small.pt \
+    .venv/bin/python research/eval_prior.py --checkpoint agents/checkpoints/bedroom_small.pt \
         --reference procedural --data-seed 0 --num-scenes 500 --json out/eval/prior_train.json
-    .venv/bin/python benchmarks/eval_prior.py --reference ../shared/data/3dfront/bedroom_val.json
+    .venv/bin/python research/eval_prior.py --reference ../shared/data/3dfront/bedroom_val.json
 
 For each reference room the prior samples one scene on that room's floor plan (20-step DDIM), so the
 reference and generated sets share their floors. Reported, for the reference and for the samples:

@@ -1,6 +1,6 @@
 """What a training config's composite reward pays for each way of taking an object out of the walls.
 
-    .venv/bin/python benchmarks/out_of_bound_remedies.py experiments/stage1_bedroom_quick.yaml out/eval/X/base_s0.json
+    .venv/bin/python research/out_of_bound_remedies.py experiments/stage1_bedroom_quick.yaml out/eval/X/base_s0.json
 
 For every object of the scene files that is out of bound (R_out's definition), three edits of its scene are
 scored with the config's reward against the scene as it is: **moved** (the smallest shift, on a 2 cm grid

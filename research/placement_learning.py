@@ -1,6 +1,6 @@
 """How fast DDPO learns a reward that only placement can change, with and without ``ddpo.x0_baseline``.
 
-    .venv/bin/python benchmarks/placement_learning.py [--epochs 60] [--threads 1]
+    .venv/bin/python research/placement_learning.py [--epochs 60] [--threads 1]
 
 The quick stage-1 config (experiments/stage1_bedroom_quick.yaml: the shipped bedroom prior, 32 scenes per
 epoch, 4 per floor plan, 20 DDIM steps) with a placement-only adapter (``adapt: [position, yaw]``: which
@@ -57,7 +57,7 @@ def main() -> None:
     ap.add_argument("--threads", type=int, default=1)
     ap.add_argument("--gae-lambda", type=float, nargs="*", default=[],
                     help="also run x0_baseline with each of these ddpo.gae_lambda values")
-    ap.add_argument("--json", default="out/benchmarks/placement_learning.json")
+    ap.add_argument("--json", default="out/research/placement_learning.json")
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
     k = max(args.epochs // 6, 1)

@@ -8,10 +8,10 @@ with its two parts: 0 to 0.5 m out from the side, and along the head half; how f
 stand (quartiles; negative: within the bed's width); and how many of the nightstands next to a bed overlap it
 (which the collision metric counts).
 
-    .venv/bin/python benchmarks/relation_fidelity.py                       # prior and shipped stage 1
-    .venv/bin/python benchmarks/relation_fidelity.py --runs out/train/task_two_nightstands
-    .venv/bin/python benchmarks/relation_fidelity.py --priors out/pretrain/bedroom_small/prior.pt
-    .venv/bin/python benchmarks/relation_fidelity.py --no-shipped --scenes prior=PRIOR.json real=REAL.json
+    .venv/bin/python research/relation_fidelity.py                       # prior and shipped stage 1
+    .venv/bin/python research/relation_fidelity.py --runs out/train/task_two_nightstands
+    .venv/bin/python research/relation_fidelity.py --priors out/pretrain/bedroom_small/prior.pt
+    .venv/bin/python research/relation_fidelity.py --no-shipped --scenes prior=PRIOR.json real=REAL.json
 """
 
 from __future__ import annotations

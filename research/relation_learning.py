@@ -29,8 +29,8 @@ Variants (:data:`VARIANTS`; combine them with ``+``, e.g. ``slot_identity+min_sn
 * ``min_snr``: min-SNR-5 timestep weighting (more weight on the mid-noise steps);
 * ``pair_bias``: the pair features (relative geometry of every pair of slots) biasing self-attention.
 
-    .venv/bin/python benchmarks/relation_learning.py --variant present --minutes 2.5 5 10 20 40 60
-    .venv/bin/python benchmarks/relation_learning.py --plot out/relation_learning/*.json \\
+    .venv/bin/python research/relation_learning.py --variant present --minutes 2.5 5 10 20 40 60
+    .venv/bin/python research/relation_learning.py --plot out/relation_learning/*.json \\
         --png out/relation_learning/curves.png
 """
 

@@ -1,6 +1,6 @@
 """Which reward term drives DDPO's advantages: the spread of each weighted term within a floor plan's group.
 
-    .venv/bin/python benchmarks/reward_spread.py experiments/task_reach_1m.yaml --batches 4
+    .venv/bin/python research/reward_spread.py experiments/task_reach_1m.yaml --batches 4
 
 DDPO normalises the total reward per floor plan (``samples_per_floor`` scenes of one floor), so what the
 policy learns from is each term's spread *within* those groups, weight included. A term whose weighted

@@ -36,17 +36,6 @@ def pytest_configure(config):
         print(f"note: the reward sandbox cannot be confined here ({missing}); its tests run with {WEAK_SANDBOX_ENV}=1")
 
 
-def load_benchmark(name: str):
-    """A script of ``benchmarks/`` as a module (loaded from its file: torchrl installs a package called
-    ``benchmarks``, so ``import benchmarks.x`` would find that one)."""
-    import importlib.util
-
-    spec = importlib.util.spec_from_file_location(f"benchmark_{name}", REPO / "benchmarks" / f"{name}.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
-
-
 def real_file(name: str) -> Path:
     path = REAL_DATA / name
     if not path.exists():

@@ -9,7 +9,7 @@ import torch
 from tensordict import TensorDict
 
 import iarcs_env  # noqa: F401
-from conftest import load_benchmark, perturb_zero_init
+from conftest import perturb_zero_init
 from agents.callbacks import CheckpointCallback, EvalCallback, StopTrainingOnRewardThreshold
 from agents.algorithms import get_algorithm
 from agents.ddpo import DDPO, DDPOSF, gae_advantages
@@ -227,14 +227,6 @@ def test_physics_gradient_lowers_the_penalty_of_its_rollouts_and_resumes_by_name
     with pytest.raises(ValueError, match="gradient_steps must be at least 1"):
         make_model(PhysicsGradient, gradient_steps=0)
 
-
-def test_reward_spread_measures_the_spread_within_floor_groups():
-    """benchmarks/reward_spread.py: a term that differs only between floors has no within-floor spread
-    (it cannot move a per-floor advantage), one that differs inside each floor has its own std."""
-    spread = load_benchmark("reward_spread").within_floor_std
-    floor = torch.tensor([0, 0, 1, 1])
-    assert spread(torch.tensor([1.0, 1.0, 5.0, 5.0]), floor) == 0.0
-    assert spread(torch.tensor([0.0, 2.0, 4.0, 8.0]), floor) == pytest.approx((1.0 + 2.0) / 2)
 
 @pytest.mark.parametrize("algo", [DDPO, DDPOSF])
 def test_updates_move_the_policy_towards_high_advantage_actions(algo):

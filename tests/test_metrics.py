@@ -1,6 +1,6 @@
 """The paper's metrics (iarcs_env.metrics / iarcs_env.geometry): hand-made scenes with known answers,
-agreement with a per-pair shapely reference on random scenes, and the reference figures of real
-3D-FRONT bedrooms."""
+agreement with a per-pair shapely reference on random scenes, the reference figures of real
+3D-FRONT bedrooms, and a prior's bed ablation (agents/bed_ablation.py)."""
 
 from pathlib import Path
 
@@ -13,7 +13,6 @@ from iarcs_env import geometry as geo
 from iarcs_env.metrics import (HEADLINE, batch_float64, class_kl, count_distance, evaluate_batch,
                                evaluate_layouts, footprint_change)
 from scene_factory import L_SHAPE, RECT, box, make_layout, random_layouts
-from conftest import load_benchmark
 
 REAL = Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "3dfront" / "bedroom_val.json"
 
@@ -236,176 +235,22 @@ def test_real_bedrooms_land_on_the_reference_figures():
     assert out["R_misaligned"] == pytest.approx(0.028, abs=0.005)  # 53 of 1,863 turned > 10 deg from the walls
 
 
-def test_eval_prior_lists_the_colliding_class_pairs_with_their_overlap():
-    """benchmarks/eval_prior.py --collision-pairs: which pairs collide, and by how much."""
-    script = load_benchmark("eval_prior")
-    # a nightstand 0.1 m into the bed (0.1 x 0.5 x 0.8 m of overlap), a chair clear of both, a lamp above
-    tucked = make_layout([box("double_bed", 1.5, 1.5, 1.0, 1.0), box("nightstand", 2.65, 1.5, 0.25, 0.25),
-                          box("chair", 3.6, 0.4, 0.2, 0.2)])
-    clear = make_layout([box("double_bed", 1.5, 1.5, 1.0, 1.0), box("nightstand", 2.8, 1.5, 0.25, 0.25)])
-    res = script.collision_pairs([tucked, clear])
-    assert res["pairs"] == 1 and res["counts"] == {"double_bed - nightstand": 1}
-    assert res["overlap_m3_quartiles"][1] == pytest.approx(0.1 * 0.5 * 0.8, rel=1e-4)
-    assert script.collision_pairs([clear])["pairs"] == 0
-
-
-def test_eval_prior_reports_task_success_per_row():
-    """benchmarks/eval_prior.py --tasks: each row gets the five checkers' rates, printed in percent."""
-    script = load_benchmark("eval_prior")
-    low = make_layout([box("double_bed", 1.5, 1.5, 1.0, 1.0, hy=0.3)])        # top at 0.6 m: reach_1m holds
-    high = make_layout([box("wardrobe", 1.5, 0.4, 0.5, 0.3, hy=1.0)])         # top at 2.0 m: it does not
-    rows = {"two rooms": {}, "untested": {}}
-    script.add_task_success(rows["two rooms"], [low, high])
-    assert set(rows["two rooms"]["tasks"]) == {"reach_1m", "tv_from_bed", "study_zone", "two_nightstands",
-                                               "wheelchair"}
-    assert rows["two rooms"]["tasks"]["reach_1m"] == 0.5 and rows["two rooms"]["tasks"]["tv_from_bed"] == 0.0
-    table = script.task_table(rows).splitlines()
-    assert len(table) == 3 and table[2].startswith("| two rooms | 50.0 | 0.0 |")
-
-
-def test_eval_prior_position_errors_match_slots_of_the_same_class():
-    """benchmarks/eval_prior.py --denoise-from: how far restored objects are from the originals."""
-    from iarcs_env.scene import SceneBatch
-
-    script = load_benchmark("eval_prior")
-    bed, stand = box("double_bed", 1.5, 1.5, 1.0, 1.0), box("nightstand", 2.8, 1.5, 0.25, 0.25)
-    original = SceneBatch.from_layouts([make_layout([bed, stand])])
-    moved = SceneBatch.from_layouts([make_layout([box("double_bed", 1.5, 1.6, 1.0, 1.0),
-                                                  box("nightstand", 2.5, 1.1, 0.25, 0.25)])])
-    err = script.position_errors(moved, original)
-    assert err["bed"] == pytest.approx(0.1, abs=1e-5) and err["nightstand"] == pytest.approx(0.5, abs=1e-5)
-    assert err["all"] == pytest.approx(0.1, abs=1e-5)  # the lower median of the two
-    relabelled = SceneBatch.from_layouts([make_layout([bed, box("wardrobe", 2.5, 1.1, 0.25, 0.25)])])
-    err = script.position_errors(relabelled, original)  # a slot whose class changed is not compared
-    assert err["bed"] == pytest.approx(0.0, abs=1e-6) and np.isnan(err["nightstand"])
-
-
-def test_relation_fidelity_takes_two_nightstands_apart():
-    """benchmarks/relation_fidelity.py: rooms with a bed and 2+ nightstands, and the share of nightstands
-    beside the nearest bed's head half (where the two_nightstands checker wants them)."""
-    from iarcs_env.scene import SceneBatch
-
-    script = load_benchmark("relation_fidelity")
-    bed = box("double_bed", 2.0, 1.05, 0.8, 1.0)  # faces +z; the headboard 0.05 m from the wall z = 0
-    left, right = box("nightstand", 3.05, 0.5, 0.2, 0.2), box("nightstand", 0.95, 0.5, 0.2, 0.2)
-    at_foot = box("nightstand", 3.05, 1.6, 0.2, 0.2)  # beside the foot half: not where the checker wants it
-    rooms = [make_layout([bed, left, right, at_foot]), make_layout([bed, at_foot]), make_layout([left, right])]
-    row = script.relation_row(SceneBatch.from_layouts(rooms))
-    assert row["bed and 2+ nightstands %"] == pytest.approx(100 / 3)
-    assert row["nightstands beside the head half %"] == pytest.approx(50.0)  # 2 of the 4 in rooms with a bed
-    assert row["nightstands out from the side %"] == pytest.approx(100.0)  # the one at the foot is beside it too
-    assert row["nightstands along the head half %"] == pytest.approx(50.0)
-    assert row["nightstand out from the bed's side, m (q1, median, q3)"] == "+0.25, +0.25, +0.25"
-    assert row["headboard to wall, median (m)"] == pytest.approx(0.05, abs=1e-5)
-    assert row["two_nightstands %"] == pytest.approx(100 / 3)
-
-
-def test_relation_fidelity_counts_nightstands_overlapping_their_bed():
-    """benchmarks/relation_fidelity.py: of the nightstands within 0.3 m of a bed, the share whose box overlaps it."""
-    from iarcs_env.scene import SceneBatch
-
-    script = load_benchmark("relation_fidelity")
-    bed = box("double_bed", 2.0, 1.05, 0.8, 1.0)  # x from 1.2 to 2.8
-    tucked = box("nightstand", 3.0, 0.5, 0.25, 0.2)  # x from 2.75: 5 cm into the bed
-    apart = box("nightstand", 0.9, 0.5, 0.2, 0.2)  # x up to 1.1: 10 cm from the bed
-    far = box("nightstand", 4.0, 0.5, 0.2, 0.2)  # 1 m away: not next to the bed
-    row = script.relation_row(SceneBatch.from_layouts([make_layout([bed, tucked, apart, far])]))
-    assert row["nightstands at a bed overlapping it %"] == pytest.approx(50.0)
-
-
 def test_bed_ablation_removes_only_the_bed_and_measures_from_it():
-    """benchmarks/bed_ablation.py: only rooms with one bed and a nightstand count; emptying the bed's slot moves
-    the restored nightstands of a network that attends across slots; distances out from the bed's side."""
+    """agents/bed_ablation.py (issue 37's "the denoiser uses the bed"): only rooms with one bed and a nightstand
+    count; emptying the bed's slot moves the restored nightstands of a network that attends across slots;
+    distances out from the bed's side."""
+    from agents.bed_ablation import bed_ablation
     from agents.denoiser import ScenePrior
     from conftest import perturb_zero_init
     from iarcs_env.env import default_stats
 
-    script = load_benchmark("bed_ablation")
     torch.manual_seed(0)
     prior = perturb_zero_init(ScenePrior.create("bedroom", default_stats("bedroom"), "tiny"))
     bed = box("double_bed", 2.0, 1.05, 0.8, 1.0)  # x from 1.2 to 2.8
     left, right = box("nightstand", 3.05, 0.5, 0.2, 0.2), box("nightstand", 0.95, 0.5, 0.2, 0.2)  # 0.25 m out
     rooms = [make_layout([bed, left]), make_layout([bed, left, right]),
              make_layout([bed, box("single_bed", 3.6, 3.0, 0.45, 0.9), left]), make_layout([bed])]
-    f = script.bed_ablation(prior, rooms, [1])[1]
+    f = bed_ablation(prior, rooms, [1])[1]
     assert (f["rooms"], f["nightstands"], f["kept"]) == (2, 3, 3)
     assert f["out_from_side_truth"] == pytest.approx([0.25, 0.25, 0.25], abs=1e-3)
     assert f["error_with_bed_m"] < 0.05 and f["moved_by_removing_bed_m"] > 0
-
-
-def test_class_counts_per_room_and_rooms_with_a_bed(tmp_path, capsys):
-    """benchmarks/class_counts.py: what a run added or removed, class by class."""
-    from iarcs_env.datasets import save_layouts
-
-    script = load_benchmark("class_counts")
-    bed, stand = box("double_bed", 1.5, 1.5, 1.0, 1.0), box("nightstand", 2.8, 1.5, 0.25, 0.25)
-    kids = box("kids_bed", 1.0, 1.0, 0.5, 0.9)
-    rooms = [make_layout([bed, stand, stand]), make_layout([kids]), make_layout([stand]), make_layout([stand])]
-    row = script.class_counts(rooms)
-    assert row["nightstand"] == 1.0 and row["double_bed"] == 0.25 and row["kids_bed"] == 0.25
-    assert row["bed (any)"] == 0.5 and row["rooms with a bed %"] == 50.0 and row["objects"] == 1.5
-    save_layouts(rooms, tmp_path / "a.json")
-    save_layouts(rooms[2:], tmp_path / "b.json")
-    assert script.main([f"before={tmp_path / 'a.json'}", str(tmp_path / "b.json")]) == 0
-    lines = capsys.readouterr().out.splitlines()
-    assert lines[0] == "| per room | before | b |"
-    assert "| double_bed | 0.25 | 0.00 |" in lines and "| rooms with a bed % | 50.0 | 0.0 |" in lines
-    assert script.main([f"both={tmp_path / 'a.json'},{tmp_path / 'b.json'}"]) == 0  # pooled: 6 rooms, 1 double bed
-    assert "| double_bed | 0.17 |" in capsys.readouterr().out.splitlines()
-    # sizes: the double bed is 2 x 2 m and 0.8 m high on the floor; nightstands 0.5 x 0.5 m; one floats 0.3 m up
-    assert script.class_sizes(rooms)["double_bed"] == pytest.approx((4.0, 0.0, 0.8, 0.0))
-    floating = make_layout([box("nightstand", 2.8, 1.5, 0.25, 0.25, y0=0.3)] * 3)
-    assert script.class_sizes([floating])["nightstand"] == pytest.approx((0.25, 0.3, 1.1, 100.0))
-    lamp = make_layout([("pendant_lamp", (2.0, 1.8, 1.5), (0.2, 0.2, 0.2), 0.0)])
-    assert script.class_sizes([lamp])["pendant_lamp"][3] is None  # lamps hang: no floor-contact share
-    assert script.main([f"before={tmp_path / 'a.json'}", str(tmp_path / "b.json"), "--sizes", "0.2"]) == 0
-    lines = capsys.readouterr().out.splitlines()
-    assert "| double_bed | 4.00 / 0.00 / 0.80 / 0% | – |" in lines
-    assert "| nightstand | 0.25 / 0.00 / 0.80 / 0% | 0.25 / 0.00 / 0.80 / 0% |" in lines
-    assert "| footprints against the first file's, all classes (geometric mean) | +0.0% | +0.0% |" in lines
-
-
-def test_class_counts_names_the_classes_of_the_objects_out_of_the_room(tmp_path, capsys):
-    """``--out-of-bound``: a wardrobe through the notch of an L-shaped room (0.9 m x 0.45 m outside once shrunk by
-    0.05 m) is out, the nightstand well inside is not; R_out's definition, class by class."""
-    from iarcs_env.datasets import save_layouts
-
-    script = load_benchmark("class_counts")
-    room = make_layout([box("wardrobe", 3.0, 2.0, 0.5, 0.5), box("nightstand", 1.0, 1.0, 0.3, 0.3)], floor=L_SHAPE)
-    rect = make_layout([box("wardrobe", 1.0, 1.0, 0.5, 0.5)])
-    counts, areas, shapes = script.out_of_bound_by_class([room, room, rect])
-    assert counts == {"wardrobe": (2, 3), "nightstand": (0, 2)}
-    assert shapes == {4: (1, 0, 1), 6: (2, 2, 4)}  # corners: (rooms, objects out, objects)
-    assert areas == pytest.approx([0.9 * 0.45] * 2, rel=1e-6)  # the half of its 0.9 x 0.9 shrunk footprint past z = 2
-    save_layouts([room], tmp_path / "l.json")
-    assert script.main([str(tmp_path / "l.json"), "--out-of-bound"]) == 0
-    out = capsys.readouterr().out
-    assert "l: 1 objects out of bound, median area outside 0.405 m^2" in out and "| wardrobe | 1.00 | 1 / 1 |" in out
-    assert "| 6 | 1 | 0.500 |" in out
-
-
-def test_out_of_bound_remedies_move_shrink_or_delete_each_object_and_score_the_edits():
-    """benchmarks/out_of_bound_remedies.py: the wardrobe centred on the notch's edge of an L-shaped room comes
-    inside by a 0.46 m shift but by no shrink down to 30%; the nightstand 0.15 m through a wall by either."""
-    from iarcs_env.scene import SceneBatch
-    from rewards import CompositeReward
-
-    script = load_benchmark("out_of_bound_remedies")
-    room = make_layout([box("wardrobe", 3.0, 2.0, 0.5, 0.5), box("nightstand", 3.9, 1.0, 0.25, 0.25),
-                        box("double_bed", 1.0, 1.0, 0.5, 0.5)], floor=L_SHAPE)
-    batch = SceneBatch.from_layouts([room])
-    found = script.remedies(batch)
-    assert found["objects"] == [(0, 0), (0, 1)]
-    moved, ok = found["moved"]
-    assert ok.tolist() == [True, True]
-    assert (moved.translations[0, 0] - batch.translations[0, 0]).norm().item() == pytest.approx(0.46, abs=1e-5)
-    assert (moved.translations[1, 1] - batch.translations[0, 1]).norm().item() == pytest.approx(0.10, abs=1e-5)
-    shrunk, ok = found["shrunk"]
-    assert ok.tolist() == [False, True]
-    assert shrunk.half_sizes[1, 1, 0].item() == pytest.approx(0.25 * 0.6, abs=1e-5)  # 3.9 + 0.15 - 0.05 = 4
-    deleted, ok = found["deleted"]
-    assert ok.all() and deleted.mask.sum(1).tolist() == [2, 2]
-    result = script.score(CompositeReward({"boundary": 1.0}), batch, found)
-    assert result["shrunk"]["n"] == 1 and result["moved"]["n"] == 2
-    for edit in script.EDITS:  # every edit takes one of two objects out of the walls: the bonus stays out of reach
-        assert result[edit]["improved"] == 1.0 and result[edit]["terms"]["boundary"] > 0

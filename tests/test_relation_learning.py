@@ -1,10 +1,10 @@
-"""The relation-learning experiment (benchmarks/relation_learning.py) and the design options it compares: its
-reduced data keeps every relation through encoding, augmentation and decoding; slot embedding, canonical slot
-order, min-SNR weighting, x0 / v prediction and given classes each do what they say; the script runs end to end."""
+"""Relations through the training pipeline, and the design options the relation-learning experiment
+(research/relation_learning.py) compares: procedural bedrooms keep every relation, exactly, through encoding,
+augmentation and decoding (issue 37); slot embedding, canonical slot order, min-SNR weighting, x0 / v prediction
+and given classes each do what they say."""
 
 from __future__ import annotations
 
-import json
 import math
 from dataclasses import replace
 
@@ -15,15 +15,13 @@ import torch
 from agents.denoiser import DenoiserConfig, SceneDenoiser, ScenePrior
 from agents.pretrain import PretrainConfig, batch_loss, draw_batch
 from agents.pretrain_data import SceneTensors, encode_batch, stats_for_training
-from conftest import load_benchmark
 from iarcs_env import relation_fidelity as rf
-from iarcs_env.relations import BEDS
+from iarcs_env.datasets.procedural import generate_layouts
 from iarcs_env.rooms import get_room
 from iarcs_env.scene import SceneBatch
 from iarcs_env.schedule import PREDICTION_TYPES, NoiseSchedule
 from scene_factory import box, make_layout
 
-rl = load_benchmark("relation_learning")
 BEDROOM = get_room("bedroom")
 
 
@@ -32,17 +30,7 @@ pytestmark = pytest.mark.usefixtures("one_thread")  # tests/conftest.py
 
 @pytest.fixture(scope="module")
 def rooms():
-    return rl.reduced_rooms(160, seed=3)
-
-
-def test_reduced_rooms(rooms):
-    assert all(len(lay.floor.vertices) == 4 for lay in rooms)
-    assert all(set(lay.labels) <= set(rl.KEPT) and sum(label in BEDS for label in lay.labels) == 1 for lay in rooms)
-    assert all(len(lay.labels) == len(lay.translations) == len(lay.yaws) == len(lay.extras) for lay in rooms)
-    assert [lay.id for lay in rl.reduced_rooms(20, seed=3)] == [lay.id for lay in rooms[:20]]  # a stream per seed
-    data = rl.figures(rooms)
-    assert data["beds_per_room"] == {"1": 1.0} and data["one_bed"] == 1.0
-    assert 0.2 < data["bed_and_2_nightstands"] < 0.8 and data["two_nightstands_given"] > 0.9
+    return generate_layouts("bedroom", 160, seed=3)
 
 
 # --------------------------------------------------------------------------------------------------------
@@ -63,9 +51,9 @@ def _turns(original: torch.Tensor, turned: torch.Tensor) -> list[int]:
 
 @pytest.mark.parametrize("design", ["present", "slot_identity", "dataset_frame"])
 def test_the_relations_survive_encoding_augmentation_and_decoding_exactly(rooms, design):
-    """The rooms as training draws them (90-degree rotations; shuffled slots, or for slot identity the canonical
-    order) and encodes them, decoded as the prior decodes samples (on the floors rotated alike): every figure of
-    the experiment and every relation, room by room, is the data's."""
+    """Procedural bedrooms as training draws them (90-degree rotations; shuffled slots, or for slot identity the
+    canonical order) and encodes them, decoded as the prior decodes samples (on the floors rotated alike): every
+    room's objects, every relation rate and every relation, room by room, are the data's."""
     canonical = design == "slot_identity"
     stats = replace(stats_for_training(rooms, "bedroom", True),
                     translation_frame="dataset" if design == "dataset_frame" else "room")
@@ -81,7 +69,10 @@ def test_the_relations_survive_encoding_augmentation_and_decoding_exactly(rooms,
         assert torch.equal(decoded.labels, plain.sort(1).values)  # sorted by class, empty slots last
     else:
         assert not torch.equal(decoded.labels, plain)  # the slots were shuffled
-    assert rl.figures(decoded) == rl.figures(rooms)
+    assert torch.equal(decoded.labels.sort(1).values, plain.sort(1).values)  # every room's objects, class by class
+    rates = rf.relation_rates(rooms)
+    assert all(r["holds"] > 0 for r in rates.values())  # every relation is in the data, to be kept or lost
+    assert rf.relation_rates(decoded) == rates
     before, after = rf.relation_flags(rooms), rf.relation_flags(decoded)
     for name in before:
         assert np.array_equal(before[name][0], after[name][0]) and np.array_equal(before[name][1], after[name][1])
@@ -138,7 +129,7 @@ def test_min_snr_weights():
     assert torch.allclose(x0, snr.clamp(max=5), rtol=1e-5)
     assert torch.allclose(v, snr.clamp(max=5) / (snr + 1), rtol=1e-5)
     # pretraining: each scene's loss times its weight
-    rooms = rl.reduced_rooms(16, seed=3)
+    rooms = generate_layouts("bedroom", 16, seed=3)
     stats = replace(stats_for_training(rooms, "bedroom", True), translation_frame="room")
     cfg = PretrainConfig(preset="tiny", loss_weighting="min_snr")
     batch = draw_batch(SceneTensors.from_layouts(rooms, 12), cfg, BEDROOM, stats, torch.Generator().manual_seed(0), 16)
@@ -172,7 +163,7 @@ def test_prediction_types_train_and_sample_consistently(kind):
 
 
 def test_classes_given_conditions_on_clean_classes_and_learns_geometry_only():
-    rooms = rl.reduced_rooms(16, seed=3)
+    rooms = generate_layouts("bedroom", 16, seed=3)
     stats = replace(stats_for_training(rooms, "bedroom", True), translation_frame="room")
     cfg = PretrainConfig(preset="tiny", classes_given=True)
     batch = draw_batch(SceneTensors.from_layouts(rooms, 12), cfg, BEDROOM, stats, torch.Generator().manual_seed(0), 16)
@@ -199,38 +190,3 @@ def test_classes_given_conditions_on_clean_classes_and_learns_geometry_only():
     scenes = prior.sample([lay.floor for lay in rooms[:4]], num_steps=2, classes=labels,
                           generator=torch.Generator().manual_seed(0))
     assert torch.equal(scenes.labels, labels)
-
-
-# --------------------------------------------------------------------------------------------------------
-# the script
-# --------------------------------------------------------------------------------------------------------
-def test_variants_combine():
-    assert rl.variant_options("present") == {"model": {}}
-    assert rl.variant_options("slot_identity+min_snr") == {"model": {"slot_embedding": True}, "canonical_order": True,
-                                                           "permutation_augment": False, "loss_weighting": "min_snr"}
-    with pytest.raises(ValueError, match="unknown variant"):
-        rl.variant_options("present+nope")
-
-
-@pytest.mark.parametrize("variant", ["present", "slot_identity+classes_given+x0+min_snr"])
-def test_the_script_runs_end_to_end(tmp_path, variant):
-    args = ["--variant", variant, "--minutes", "0.02", "0.04", "--train-rooms", "40", "--heldout", "8",
-            "--preset", "tiny", "--layers", "1", "--batch-size", "8", "--quiet", "--out", str(tmp_path / "run"),
-            "--json", str(tmp_path / "rows.json")]
-    rl.main(args)
-    rows = json.loads((tmp_path / "rows.json").read_text())
-    assert [r["budget_minutes"] for r in rows] == [0.02, 0.04]
-    assert 0 < rows[0]["steps"] < rows[1]["steps"]
-    for row in rows:
-        assert row["rooms_seen"] == 8 * row["steps"] and row["variant"] == variant
-        assert row["data"] == rows[0]["data"] and row["data"]["rooms"] == 8 and row["samples"]["rooms"] == 8
-        assert row["beds_per_room_tv"] == pytest.approx(rl.total_variation(row["samples"]["beds_per_room"],
-                                                                          row["data"]["beds_per_room"]))
-        prior = ScenePrior.load(row["prior"])
-        if variant != "present":  # the options reached the prior
-            assert prior.denoiser.config.slot_embedding and prior.schedule.config.prediction_type == "sample"
-            assert prior.meta["classes_given"] and row["samples"]["beds_per_room"] == row["data"]["beds_per_room"]
-    with pytest.raises(SystemExit, match="holds a run"):
-        rl.main(args)
-    rl.main(["--plot", str(tmp_path / "rows.json"), "--png", str(tmp_path / "curves.png")])
-    assert (tmp_path / "curves.png").stat().st_size > 1000

@@ -1,0 +1,253 @@
+"""Tests of the analysis scripts' own logic (not of the product: tests/ covers that, and imports nothing here).
+Run by hand, not by ``make test``::
+
+    .venv/bin/python -m pytest research/
+"""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+HERE = Path(__file__).resolve().parent
+sys.path.insert(0, str(HERE.parent / "tests"))  # the hand-made layouts of tests/scene_factory.py
+
+from agents.denoiser import ScenePrior  # noqa: E402
+from iarcs_env.relations import BEDS  # noqa: E402
+from scene_factory import L_SHAPE, box, make_layout  # noqa: E402
+
+
+def load(name: str):
+    """research/<name>.py as a module, loaded from its file (research/ is a folder of scripts, not a package)."""
+    spec = importlib.util.spec_from_file_location(f"research_{name}", HERE / f"{name}.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+@pytest.fixture(autouse=True)
+def one_thread():
+    """Tiny models run fastest (and reproducibly) on one torch thread; the setting is restored afterwards."""
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(before)
+
+
+rl = load("relation_learning")
+
+
+# --- eval_prior.py, relation_fidelity.py, class_counts.py, out_of_bound_remedies.py ------------------------
+def test_eval_prior_lists_the_colliding_class_pairs_with_their_overlap():
+    """research/eval_prior.py --collision-pairs: which pairs collide, and by how much."""
+    script = load("eval_prior")
+    # a nightstand 0.1 m into the bed (0.1 x 0.5 x 0.8 m of overlap), a chair clear of both, a lamp above
+    tucked = make_layout([box("double_bed", 1.5, 1.5, 1.0, 1.0), box("nightstand", 2.65, 1.5, 0.25, 0.25),
+                          box("chair", 3.6, 0.4, 0.2, 0.2)])
+    clear = make_layout([box("double_bed", 1.5, 1.5, 1.0, 1.0), box("nightstand", 2.8, 1.5, 0.25, 0.25)])
+    res = script.collision_pairs([tucked, clear])
+    assert res["pairs"] == 1 and res["counts"] == {"double_bed - nightstand": 1}
+    assert res["overlap_m3_quartiles"][1] == pytest.approx(0.1 * 0.5 * 0.8, rel=1e-4)
+    assert script.collision_pairs([clear])["pairs"] == 0
+
+
+def test_eval_prior_reports_task_success_per_row():
+    """research/eval_prior.py --tasks: each row gets the five checkers' rates, printed in percent."""
+    script = load("eval_prior")
+    low = make_layout([box("double_bed", 1.5, 1.5, 1.0, 1.0, hy=0.3)])        # top at 0.6 m: reach_1m holds
+    high = make_layout([box("wardrobe", 1.5, 0.4, 0.5, 0.3, hy=1.0)])         # top at 2.0 m: it does not
+    rows = {"two rooms": {}, "untested": {}}
+    script.add_task_success(rows["two rooms"], [low, high])
+    assert set(rows["two rooms"]["tasks"]) == {"reach_1m", "tv_from_bed", "study_zone", "two_nightstands",
+                                               "wheelchair"}
+    assert rows["two rooms"]["tasks"]["reach_1m"] == 0.5 and rows["two rooms"]["tasks"]["tv_from_bed"] == 0.0
+    table = script.task_table(rows).splitlines()
+    assert len(table) == 3 and table[2].startswith("| two rooms | 50.0 | 0.0 |")
+
+
+def test_eval_prior_position_errors_match_slots_of_the_same_class():
+    """research/eval_prior.py --denoise-from: how far restored objects are from the originals."""
+    from iarcs_env.scene import SceneBatch
+
+    script = load("eval_prior")
+    bed, stand = box("double_bed", 1.5, 1.5, 1.0, 1.0), box("nightstand", 2.8, 1.5, 0.25, 0.25)
+    original = SceneBatch.from_layouts([make_layout([bed, stand])])
+    moved = SceneBatch.from_layouts([make_layout([box("double_bed", 1.5, 1.6, 1.0, 1.0),
+                                                  box("nightstand", 2.5, 1.1, 0.25, 0.25)])])
+    err = script.position_errors(moved, original)
+    assert err["bed"] == pytest.approx(0.1, abs=1e-5) and err["nightstand"] == pytest.approx(0.5, abs=1e-5)
+    assert err["all"] == pytest.approx(0.1, abs=1e-5)  # the lower median of the two
+    relabelled = SceneBatch.from_layouts([make_layout([bed, box("wardrobe", 2.5, 1.1, 0.25, 0.25)])])
+    err = script.position_errors(relabelled, original)  # a slot whose class changed is not compared
+    assert err["bed"] == pytest.approx(0.0, abs=1e-6) and np.isnan(err["nightstand"])
+
+
+def test_relation_fidelity_takes_two_nightstands_apart():
+    """research/relation_fidelity.py: rooms with a bed and 2+ nightstands, and the share of nightstands
+    beside the nearest bed's head half (where the two_nightstands checker wants them)."""
+    from iarcs_env.scene import SceneBatch
+
+    script = load("relation_fidelity")
+    bed = box("double_bed", 2.0, 1.05, 0.8, 1.0)  # faces +z; the headboard 0.05 m from the wall z = 0
+    left, right = box("nightstand", 3.05, 0.5, 0.2, 0.2), box("nightstand", 0.95, 0.5, 0.2, 0.2)
+    at_foot = box("nightstand", 3.05, 1.6, 0.2, 0.2)  # beside the foot half: not where the checker wants it
+    rooms = [make_layout([bed, left, right, at_foot]), make_layout([bed, at_foot]), make_layout([left, right])]
+    row = script.relation_row(SceneBatch.from_layouts(rooms))
+    assert row["bed and 2+ nightstands %"] == pytest.approx(100 / 3)
+    assert row["nightstands beside the head half %"] == pytest.approx(50.0)  # 2 of the 4 in rooms with a bed
+    assert row["nightstands out from the side %"] == pytest.approx(100.0)  # the one at the foot is beside it too
+    assert row["nightstands along the head half %"] == pytest.approx(50.0)
+    assert row["nightstand out from the bed's side, m (q1, median, q3)"] == "+0.25, +0.25, +0.25"
+    assert row["headboard to wall, median (m)"] == pytest.approx(0.05, abs=1e-5)
+    assert row["two_nightstands %"] == pytest.approx(100 / 3)
+
+
+def test_relation_fidelity_counts_nightstands_overlapping_their_bed():
+    """research/relation_fidelity.py: of the nightstands within 0.3 m of a bed, the share whose box overlaps it."""
+    from iarcs_env.scene import SceneBatch
+
+    script = load("relation_fidelity")
+    bed = box("double_bed", 2.0, 1.05, 0.8, 1.0)  # x from 1.2 to 2.8
+    tucked = box("nightstand", 3.0, 0.5, 0.25, 0.2)  # x from 2.75: 5 cm into the bed
+    apart = box("nightstand", 0.9, 0.5, 0.2, 0.2)  # x up to 1.1: 10 cm from the bed
+    far = box("nightstand", 4.0, 0.5, 0.2, 0.2)  # 1 m away: not next to the bed
+    row = script.relation_row(SceneBatch.from_layouts([make_layout([bed, tucked, apart, far])]))
+    assert row["nightstands at a bed overlapping it %"] == pytest.approx(50.0)
+
+
+def test_class_counts_per_room_and_rooms_with_a_bed(tmp_path, capsys):
+    """research/class_counts.py: what a run added or removed, class by class."""
+    from iarcs_env.datasets import save_layouts
+
+    script = load("class_counts")
+    bed, stand = box("double_bed", 1.5, 1.5, 1.0, 1.0), box("nightstand", 2.8, 1.5, 0.25, 0.25)
+    kids = box("kids_bed", 1.0, 1.0, 0.5, 0.9)
+    rooms = [make_layout([bed, stand, stand]), make_layout([kids]), make_layout([stand]), make_layout([stand])]
+    row = script.class_counts(rooms)
+    assert row["nightstand"] == 1.0 and row["double_bed"] == 0.25 and row["kids_bed"] == 0.25
+    assert row["bed (any)"] == 0.5 and row["rooms with a bed %"] == 50.0 and row["objects"] == 1.5
+    save_layouts(rooms, tmp_path / "a.json")
+    save_layouts(rooms[2:], tmp_path / "b.json")
+    assert script.main([f"before={tmp_path / 'a.json'}", str(tmp_path / "b.json")]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    assert lines[0] == "| per room | before | b |"
+    assert "| double_bed | 0.25 | 0.00 |" in lines and "| rooms with a bed % | 50.0 | 0.0 |" in lines
+    assert script.main([f"both={tmp_path / 'a.json'},{tmp_path / 'b.json'}"]) == 0  # pooled: 6 rooms, 1 double bed
+    assert "| double_bed | 0.17 |" in capsys.readouterr().out.splitlines()
+    # sizes: the double bed is 2 x 2 m and 0.8 m high on the floor; nightstands 0.5 x 0.5 m; one floats 0.3 m up
+    assert script.class_sizes(rooms)["double_bed"] == pytest.approx((4.0, 0.0, 0.8, 0.0))
+    floating = make_layout([box("nightstand", 2.8, 1.5, 0.25, 0.25, y0=0.3)] * 3)
+    assert script.class_sizes([floating])["nightstand"] == pytest.approx((0.25, 0.3, 1.1, 100.0))
+    lamp = make_layout([("pendant_lamp", (2.0, 1.8, 1.5), (0.2, 0.2, 0.2), 0.0)])
+    assert script.class_sizes([lamp])["pendant_lamp"][3] is None  # lamps hang: no floor-contact share
+    assert script.main([f"before={tmp_path / 'a.json'}", str(tmp_path / "b.json"), "--sizes", "0.2"]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    assert "| double_bed | 4.00 / 0.00 / 0.80 / 0% | – |" in lines
+    assert "| nightstand | 0.25 / 0.00 / 0.80 / 0% | 0.25 / 0.00 / 0.80 / 0% |" in lines
+    assert "| footprints against the first file's, all classes (geometric mean) | +0.0% | +0.0% |" in lines
+
+
+def test_class_counts_names_the_classes_of_the_objects_out_of_the_room(tmp_path, capsys):
+    """``--out-of-bound``: a wardrobe through the notch of an L-shaped room (0.9 m x 0.45 m outside once shrunk by
+    0.05 m) is out, the nightstand well inside is not; R_out's definition, class by class."""
+    from iarcs_env.datasets import save_layouts
+
+    script = load("class_counts")
+    room = make_layout([box("wardrobe", 3.0, 2.0, 0.5, 0.5), box("nightstand", 1.0, 1.0, 0.3, 0.3)], floor=L_SHAPE)
+    rect = make_layout([box("wardrobe", 1.0, 1.0, 0.5, 0.5)])
+    counts, areas, shapes = script.out_of_bound_by_class([room, room, rect])
+    assert counts == {"wardrobe": (2, 3), "nightstand": (0, 2)}
+    assert shapes == {4: (1, 0, 1), 6: (2, 2, 4)}  # corners: (rooms, objects out, objects)
+    assert areas == pytest.approx([0.9 * 0.45] * 2, rel=1e-6)  # the half of its 0.9 x 0.9 shrunk footprint past z = 2
+    save_layouts([room], tmp_path / "l.json")
+    assert script.main([str(tmp_path / "l.json"), "--out-of-bound"]) == 0
+    out = capsys.readouterr().out
+    assert "l: 1 objects out of bound, median area outside 0.405 m^2" in out and "| wardrobe | 1.00 | 1 / 1 |" in out
+    assert "| 6 | 1 | 0.500 |" in out
+
+
+def test_out_of_bound_remedies_move_shrink_or_delete_each_object_and_score_the_edits():
+    """research/out_of_bound_remedies.py: the wardrobe centred on the notch's edge of an L-shaped room comes
+    inside by a 0.46 m shift but by no shrink down to 30%; the nightstand 0.15 m through a wall by either."""
+    from iarcs_env.scene import SceneBatch
+    from rewards import CompositeReward
+
+    script = load("out_of_bound_remedies")
+    room = make_layout([box("wardrobe", 3.0, 2.0, 0.5, 0.5), box("nightstand", 3.9, 1.0, 0.25, 0.25),
+                        box("double_bed", 1.0, 1.0, 0.5, 0.5)], floor=L_SHAPE)
+    batch = SceneBatch.from_layouts([room])
+    found = script.remedies(batch)
+    assert found["objects"] == [(0, 0), (0, 1)]
+    moved, ok = found["moved"]
+    assert ok.tolist() == [True, True]
+    assert (moved.translations[0, 0] - batch.translations[0, 0]).norm().item() == pytest.approx(0.46, abs=1e-5)
+    assert (moved.translations[1, 1] - batch.translations[0, 1]).norm().item() == pytest.approx(0.10, abs=1e-5)
+    shrunk, ok = found["shrunk"]
+    assert ok.tolist() == [False, True]
+    assert shrunk.half_sizes[1, 1, 0].item() == pytest.approx(0.25 * 0.6, abs=1e-5)  # 3.9 + 0.15 - 0.05 = 4
+    deleted, ok = found["deleted"]
+    assert ok.all() and deleted.mask.sum(1).tolist() == [2, 2]
+    result = script.score(CompositeReward({"boundary": 1.0}), batch, found)
+    assert result["shrunk"]["n"] == 1 and result["moved"]["n"] == 2
+    for edit in script.EDITS:  # every edit takes one of two objects out of the walls: the bonus stays out of reach
+        assert result[edit]["improved"] == 1.0 and result[edit]["terms"]["boundary"] > 0
+
+
+# --- reward_spread.py ---------------------------------------------------------------------------------------
+def test_reward_spread_measures_the_spread_within_floor_groups():
+    """research/reward_spread.py: a term that differs only between floors has no within-floor spread
+    (it cannot move a per-floor advantage), one that differs inside each floor has its own std."""
+    spread = load("reward_spread").within_floor_std
+    floor = torch.tensor([0, 0, 1, 1])
+    assert spread(torch.tensor([1.0, 1.0, 5.0, 5.0]), floor) == 0.0
+    assert spread(torch.tensor([0.0, 2.0, 4.0, 8.0]), floor) == pytest.approx((1.0 + 2.0) / 2)
+
+
+# --- relation_learning.py -----------------------------------------------------------------------------------
+def test_reduced_rooms():
+    rooms = rl.reduced_rooms(160, seed=3)
+    assert all(len(lay.floor.vertices) == 4 for lay in rooms)
+    assert all(set(lay.labels) <= set(rl.KEPT) and sum(label in BEDS for label in lay.labels) == 1 for lay in rooms)
+    assert all(len(lay.labels) == len(lay.translations) == len(lay.yaws) == len(lay.extras) for lay in rooms)
+    assert [lay.id for lay in rl.reduced_rooms(20, seed=3)] == [lay.id for lay in rooms[:20]]  # a stream per seed
+    data = rl.figures(rooms)
+    assert data["beds_per_room"] == {"1": 1.0} and data["one_bed"] == 1.0
+    assert 0.2 < data["bed_and_2_nightstands"] < 0.8 and data["two_nightstands_given"] > 0.9
+
+
+def test_variants_combine():
+    assert rl.variant_options("present") == {"model": {}}
+    assert rl.variant_options("slot_identity+min_snr") == {"model": {"slot_embedding": True}, "canonical_order": True,
+                                                           "permutation_augment": False, "loss_weighting": "min_snr"}
+    with pytest.raises(ValueError, match="unknown variant"):
+        rl.variant_options("present+nope")
+
+
+@pytest.mark.parametrize("variant", ["present", "slot_identity+classes_given+x0+min_snr"])
+def test_the_script_runs_end_to_end(tmp_path, variant):
+    args = ["--variant", variant, "--minutes", "0.02", "0.04", "--train-rooms", "40", "--heldout", "8",
+            "--preset", "tiny", "--layers", "1", "--batch-size", "8", "--quiet", "--out", str(tmp_path / "run"),
+            "--json", str(tmp_path / "rows.json")]
+    rl.main(args)
+    rows = json.loads((tmp_path / "rows.json").read_text())
+    assert [r["budget_minutes"] for r in rows] == [0.02, 0.04]
+    assert 0 < rows[0]["steps"] < rows[1]["steps"]
+    for row in rows:
+        assert row["rooms_seen"] == 8 * row["steps"] and row["variant"] == variant
+        assert row["data"] == rows[0]["data"] and row["data"]["rooms"] == 8 and row["samples"]["rooms"] == 8
+        assert row["beds_per_room_tv"] == pytest.approx(rl.total_variation(row["samples"]["beds_per_room"],
+                                                                          row["data"]["beds_per_room"]))
+        prior = ScenePrior.load(row["prior"])
+        if variant != "present":  # the options reached the prior
+            assert prior.denoiser.config.slot_embedding and prior.schedule.config.prediction_type == "sample"
+            assert prior.meta["classes_given"] and row["samples"]["beds_per_room"] == row["data"]["beds_per_room"]
+    with pytest.raises(SystemExit, match="holds a run"):
+        rl.main(args)
+    rl.main(["--plot", str(tmp_path / "rows.json"), "--png", str(tmp_path / "curves.png")])
+    assert (tmp_path / "curves.png").stat().st_size > 1000
