@@ -151,7 +151,7 @@ def test_api_reference_documents_every_public_member():
     assert public_members()[:5] == ["batch_size", "num_slots", "room", "classes", "present"]
     for name in public_members():
         assert f"scene.{name}" in text, name
-    assert "scene.free_circle(radius, near=None, within=0.5)" in text
+    assert "scene.free_circle(radius, near=None, within=0.5, middle=None)" in text
     assert "def reward(scene):" in text and "support_surface (" in text and "forward = (sin(yaw), cos(yaw))" in text
     assert "dining_table" not in api_reference("bedroom").split("Classes:")[1]
     assert "``" not in text.replace("```", "")
