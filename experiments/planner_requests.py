@@ -286,6 +286,12 @@ REQUESTS: list[Request] = [
        lambda r: every(r.of(*BEDS), lambda i: r.strip_free(i, "sides", 0.5))),
     _r("The wardrobe turned away from the bed", "direction", "a wardrobe with a bed > 120 deg from its facing",
        lambda r: any(r.angle(i, j) > 120 for i, j in pairs(r.of("wardrobe"), r.of(*BEDS)))),
+    _r("Place the wardrobe far from the bed", "distance", "every wardrobe-bed footprint gap >= 1 m",
+       lambda r: none(pairs(r.of("wardrobe"), r.of(*BEDS)), lambda i, j: r.gap(i, j) < 1.0)),
+    _r("The nightstands beside the bed, not in front of it", "refusal",
+       "a nightstand within 0.5 m of a bed, none in a bed's front zone",
+       lambda r: any(r.gap(i, j) <= 0.5 for i, j in pairs(r.of("nightstand"), r.of(*BEDS)))
+       and none(pairs(r.of("nightstand"), r.of(*BEDS)), lambda i, j: r.in_front(i, j))),
     _r("Keep at least 0.2 m between all furniture", "quantifier", "every pair of ground objects >= 0.2 m apart",
        lambda r: none(pairs(r.ground(), r.ground()), lambda i, j: r.gap(i, j) < 0.2)),
     _r("A small bedroom", "room size", "floor area <= 12 m^2", lambda r: r.floor.area <= 12.0),

@@ -7,13 +7,12 @@ import re
 from dataclasses import dataclass
 
 from .constraint_grammar import _NUM, _UNIT, GRAMMAR_RULES, QTY, cover_all, quantity, scope
-from .planner_checks import (CONTEXT_WORDS, FARSIGHTED_MIN, FILLER, FRONT_DEPTH, IMPLIED_WEIGHT, IRREGULAR_PLURALS,
-                             NEAR_GAP, NEEDS_OBJECTS, NUMBER_WORDS, OBJECTS, Check, Entity, Param, Plan, STUDY_SEATS,
-                             UHD_MAX, VIEW_ANGLE, VIEW_RANGE, WALKING_PATH, WALL_GAP, WHEELCHAIR_PATH, WHEELCHAIR_TURN,
-                             aligned_check,
-                             clear_path_check, count_check, either_side_check, exists_check, facing_check, far_check,
-                             height_check, in_front_check, near_check, side_check, turning_check, view_check,
-                             wall_check)
+from .planner_checks import (CONTEXT_WORDS, FAR_GAP, FARSIGHTED_MIN, FILLER, FRONT_DEPTH, IMPLIED_WEIGHT,
+                             IRREGULAR_PLURALS, NEAR_GAP, NEEDS_OBJECTS, NUMBER_WORDS, OBJECTS, Check, Entity, Param,
+                             Plan, STUDY_SEATS, UHD_MAX, VIEW_ANGLE, VIEW_RANGE, WALKING_PATH, WALL_GAP,
+                             WHEELCHAIR_PATH, WHEELCHAIR_TURN, aligned_check, clear_path_check, count_check,
+                             either_side_check, exists_check, facing_check, far_check, height_check, in_front_check,
+                             near_check, side_check, turning_check, view_check, wall_check)
 from .planner_scope import EVERY, NONE, SOME, WITHOUT, object_check, pair_check
 
 
@@ -24,6 +23,13 @@ from .planner_scope import EVERY, NONE, SOME, WITHOUT, object_check, pair_check
 #: Words that may stand between a relation and the object it names ("facing the bed", "next to every bed").
 _DETERMINERS = re.compile(r" ?(?:(?:the|a|an|its|their|my|our|this|that|these|those|any|every|each|all|some|both|2|"
                           r"of|one) )*")
+
+
+#: A preposition (and determiners) just before an object word: the object of a relation, not a subject.
+_OBJECT_OF = re.compile(r"\b(?:of|to|from|facing|faces|face|behind|beside|near|between|towards?|than|against|by|"
+                        r"opposite)(?: (?:the|a|an|its|their|any|every|each|all|some|both|2|1))* $")
+#: ... unless a quantifier owns the "of" ("none of the chairs", "each of the beds").
+_QUANTIFIER_OF = re.compile(r"\b(?:none|all|each|any|some|every|both|1|2) of(?: the)? $")
 
 
 @dataclass
@@ -73,9 +79,16 @@ class _Reader:
                     found.append(_Mention(m.start(), m.end(), OBJECTS[phrase]))
         return sorted(found, key=lambda f: f.start)
 
-    def before(self, pos: int, exclude: Entity | None = None) -> _Mention | None:
+    def before(self, pos: int, exclude: Entity | None = None, subject: bool = True) -> _Mention | None:
+        """The last object named before ``pos``; as a ``subject``, not one that is the object of a preposition
+        ("... beside the bed, not in front of it": the bed is not what should not be in front)."""
         cands = [m for m in self.mentions if m.end <= pos and m.entity != exclude]
-        return cands[-1] if cands else None
+        if not cands:
+            return None
+        head = self.text[:cands[-1].start]
+        if subject and _OBJECT_OF.search(head) and not _QUANTIFIER_OF.search(head):
+            return None
+        return cands[-1]
 
     def after(self, pos: int, limit: int | None = None) -> _Mention | None:
         cands = [m for m in self.mentions if m.start >= pos and (limit is None or m.start < limit)]
@@ -87,7 +100,7 @@ class _Reader:
         rest = self.text[pos:].lstrip()
         if re.match(r"(?:it|them)\b", rest) and subject is not None:
             self.cover(pos, pos + len(self.text[pos:]) - len(rest) + 4)
-            return self.before(subject.start, exclude=subject.entity)
+            return self.before(subject.start, exclude=subject.entity, subject=False)
         words = _DETERMINERS.match(self.text, pos)
         return next((m for m in self.mentions if m.start == words.end()), None)
 
@@ -227,7 +240,8 @@ def _rule_distance(r: _Reader) -> None:
     far_q = (rf"\b(?:at least|no less than|more than|minimum of) (?P<q>{QTY}) (?:away )?from\b|"
              rf"\b(?P<q2>{QTY}) (?:or more )?away from\b")
     near_w = r"\b(?:next to|beside|near|close to|adjacent to|alongside)\b"
-    for pattern, kind in ((near_q, "near"), (far_q, "far"), (near_w, "near_word")):
+    far_w = r"\b(?:far (?:away )?from|(?:well )?away from)\b"
+    for pattern, kind in ((near_q, "near"), (far_q, "far"), (near_w, "near_word"), (far_w, "far_word")):
         for m in re.finditer(pattern, r.text):
             if any(r.covered[k] for k, (s, e, _) in enumerate(r.words) if s >= m.start() and e <= m.end()):
                 continue
@@ -238,10 +252,11 @@ def _rule_distance(r: _Reader) -> None:
                 r.cover(m.start(), m.end())
                 continue
             quant, spans = scope(r, subject, m.start())
-            if kind == "far":
+            if kind in ("far", "far_word"):
                 if quant in (NONE, WITHOUT):     # "no X at least d from Y": not read
                     continue
-                check = far_check(subject.entity, ref.entity, quantity(m.group("q") or m.group("q2")), m.group())
+                dist = quantity(m.group("q") or m.group("q2")) if kind == "far" else FAR_GAP
+                check = far_check(subject.entity, ref.entity, dist, m.group())
             else:
                 dist = quantity(m.group("q")) if kind == "near" else NEAR_GAP
                 check = (near_check(subject.entity, ref.entity, dist, m.group()) if quant in (None, SOME) else

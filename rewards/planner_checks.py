@@ -98,6 +98,7 @@ FARSIGHTED_MIN = 2.0           # a farsighted viewer cannot focus closer than ab
 UHD_MAX = 4.0                  # a 4K picture keeps its detail up to about 4 m for a bedroom-size screen
 VIEW_ANGLE = 30.0              # screen within 30 degrees of the line of sight, both ways
 NEAR_GAP = 0.5                 # "next to", "beside", "near"
+FAR_GAP = 1.0                  # "far from", "away from"
 SIDE_GAP = 0.5                 # nightstand within 0.5 m of the bed's side
 FRONT_DEPTH = 0.9              # a seat up to 0.9 m in front of a desk
 FRONT_MARGIN = 0.1             # ... and within the desk's width + 0.1 m laterally

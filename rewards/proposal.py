@@ -23,13 +23,14 @@ not no never without none nothing neither nor except unless avoid cannot can't d
 toward towards away facing faces face behind beside either both between centred centered centre center middle
 against opposite apart far near close closer nearer farther further beyond around inside outside
 every each all any some least most more fewer less exactly only than maximum minimum max min
+front left right corner
 """.split())
 
 
 def meaning_lost(not_understood: list[str]) -> list[str]:
     """The not-understood parts of a request that hold a word changing its meaning (:data:`MEANING_WORDS`)."""
     return [part for part in not_understood
-            if MEANING_WORDS & set(re.findall(r"[a-z']+", part.lower().replace("’", "'")))]
+            if MEANING_WORDS & {w.strip("'") for w in re.findall(r"[a-z']+", part.lower().replace("’", "'"))}]
 
 
 @dataclass
