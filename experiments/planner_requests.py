@@ -286,6 +286,8 @@ REQUESTS: list[Request] = [
        lambda r: every(r.of(*BEDS), lambda i: r.strip_free(i, "sides", 0.5))),
     _r("The wardrobe turned away from the bed", "direction", "a wardrobe with a bed > 120 deg from its facing",
        lambda r: any(r.angle(i, j) > 120 for i, j in pairs(r.of("wardrobe"), r.of(*BEDS)))),
+    _r("There is no wardrobe closer than 1 m to the bed", "negation", "every wardrobe-bed footprint gap >= 1 m",
+       lambda r: none(pairs(r.of("wardrobe"), r.of(*BEDS)), lambda i, j: r.gap(i, j) < 1.0)),
     _r("Place the wardrobe far from the bed", "distance", "every wardrobe-bed footprint gap >= 1 m",
        lambda r: none(pairs(r.of("wardrobe"), r.of(*BEDS)), lambda i, j: r.gap(i, j) < 1.0)),
     _r("The nightstands beside the bed, not in front of it", "refusal",

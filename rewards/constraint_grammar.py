@@ -141,10 +141,16 @@ def _rule_apart(r) -> None:
         mentions = [x for x in r.mentions if clause <= x.start and x.end <= m.start()]
         if not mentions:
             continue
-        subject = mentions[0]
+        subject, end = mentions[0], m.end()
         ref = mentions[1] if len(mentions) == 2 and " and " in r.text[subject.end:mentions[1].start] else subject
         if len(mentions) > 2 or (len(mentions) == 2 and ref is subject):
             continue
+        to = re.compile(r" (?:to|from) ").match(r.text, m.end())   # "no X closer than d to Y"
+        if to:
+            other = _mention_at(r, to.end())
+            if other is None or ref is not subject:
+                continue
+            ref, end = other, other.end
         quant, spans = scope(r, subject, m.start())
         close = m.group("q2") is not None or m.group("cmp") in ("at most", "no more than", "less than", "within")
         value = quantity(m.group("q") or m.group("q2"))
@@ -157,7 +163,7 @@ def _rule_apart(r) -> None:
         else:
             continue
         cover_all(r, spans)
-        r.add(check, m.start(), m.end(), subject, ref)
+        r.add(check, m.start(), end, subject, ref)
 
 
 def _rule_between(r) -> None:

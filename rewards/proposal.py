@@ -23,7 +23,7 @@ not no never without none nothing neither nor except unless avoid cannot can't d
 toward towards away facing faces face behind beside either both between centred centered centre center middle
 against opposite apart far near close closer nearer farther further beyond around inside outside
 every each all any some least most more fewer less exactly only than maximum minimum max min
-front left right corner
+front left right corner or
 """.split())
 
 

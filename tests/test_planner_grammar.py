@@ -68,6 +68,8 @@ READINGS = {
     "some cabinet against a wall": ["cabinet_wall_some"],
     "all wardrobes against a wall": ["wardrobe_against_wall"],
     "no 2 pieces of furniture closer than 0.3 m": ["furniture_far_furniture_none"],
+    "there is no wardrobe closer than 1 m to the bed": ["wardrobe_far_bed_none"],
+    "place the wardrobe far from the bed": ["wardrobe_away_from_bed"],
     "a nightstand between the bed and the wardrobe": ["nightstand_between_bed_and_wardrobe", "has_nightstand",
                                                       "has_bed", "has_wardrobe"],
     "the bed in the middle of the room": ["bed_middle"],
@@ -88,7 +90,10 @@ def test_meaning_words_are_read(request_text):
     ("A chair in front of every desk", ["every"]),               # a quantifier on the reference
     ("Not every chair faces the desk", ["not"]),
     ("Only chairs near the desk", ["only"]),
-    ("A bed with nothing in front of it", ["nothing"]),
+    ("A bed with nothing in front of it", ["'in front of' (needs an object before and after it)", "nothing"]),
+    ("The nightstands beside the bed, not in front of it",          # the bed is not the subject of "in front"
+     ["'in front of' (needs an object before and after it)", "not"]),
+    ("No chair or desk within 1 m of the bed", ["or"]),
     ("At least 3 pieces of furniture against a wall", ["least 3"]),  # a count of the objects meeting a relation
     ("Nightstands on either side of every bed", ["every"]),
 ])
