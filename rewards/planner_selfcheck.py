@@ -28,6 +28,11 @@ def _class(ent: Entity, classes: tuple[str, ...]) -> str | None:
     return next((c for c in classes if c in names), None)
 
 
+def _ground(classes: tuple[str, ...]) -> list[str]:
+    """The room's classes that stand on the floor (obstacles of the free-space checks)."""
+    return [c for c in classes if c in CLASS_GROUPS["ground"]]
+
+
 def _obj(label: str, x: float, z: float, half=SUBJECT, yaw: float = 0.0) -> tuple:
     return label, (x, half[1], z), half, yaw
 
@@ -42,7 +47,7 @@ def _value(check: Check, name: str, default: float = 0.0) -> float:
     return next((p.value for p in check.params if p.name.rstrip("_0123456789") == name), default)
 
 
-def _relation(check: Check, s: str, r: str, room: str) -> tuple[list[tuple], list[tuple]] | None:
+def _relation(check: Check, s: str, r: str) -> tuple[list[tuple], list[tuple]] | None:
     """(objects where "s <relation> r" holds, objects where it does not) for a relation check."""
     ref = _obj(r, 4.0, 3.0, REFERENCE)
     hw, hd = REFERENCE[0], REFERENCE[2]
@@ -93,7 +98,7 @@ def examples(check: Check, room: str) -> tuple[list[Layout], list[Layout]] | Non
             s, r = labels[0], labels[1]
         else:
             r = labels[1]
-        pair = _relation(check, s, r, room)
+        pair = _relation(check, s, r)
         good, bad = pair if kind != "far" and scope not in ("none", "without") else pair[::-1]
         return [_layout(room, good)], [_layout(room, bad)]
     if kind in ("exists", "count"):
@@ -121,7 +126,7 @@ def examples(check: Check, room: str) -> tuple[list[Layout], list[Layout]] | Non
         return [_layout(room, [good], size, size)], [_layout(room, [bad], size, size)]
     if kind.startswith("free_") and kind != "free_area":
         depth = _value(check, "FREE_DEPTH", 0.8)
-        other = next(c for c in classes if c != s and _class(Entity("g", ("ground",), ""), (c,)))
+        other = next(c for c in _ground(classes) if c != s)
         hw, hd = SUBJECT[0], SUBJECT[2]
         spots = {"front": [(0, hd + depth / 2)], "back": [(0, -hd - depth / 2)],
                  "sides": [(hw + depth / 2, 0), (-hw - depth / 2, 0)]}
@@ -134,7 +139,7 @@ def examples(check: Check, room: str) -> tuple[list[Layout], list[Layout]] | Non
         big = size * 1.5 + 3.0
         if "MIDDLE_RADIUS" in {p.name for p in check.params}:
             block = _value(check, "MIDDLE_RADIUS", 1.0) + size / 2 + 0.1
-            other = next(c for c in classes if _class(Entity("g", ("ground",), ""), (c,)))
+            other = _ground(classes)[0]
             return ([_layout(room, [], big, big)],
                     [_layout(room, [_obj(other, big / 2, big / 2, (block, 0.4, block))], big, big)])
         return [_layout(room, [], big, big)], [_layout(room, [], size * 0.7, big)]
@@ -155,8 +160,7 @@ def examples(check: Check, room: str) -> tuple[list[Layout], list[Layout]] | Non
 
 def _barrier(room: str, width: float) -> tuple[list[Layout], list[Layout]]:
     """Clear paths: an object behind a barrier across the room, the gap in it twice the width, or half."""
-    classes = get_room(room).classes
-    ground = [c for c in classes if _class(Entity("g", ("ground",), ""), (c,))]
+    ground = _ground(get_room(room).classes)
     rooms = []
     for gap in (2 * width, 0.5 * width):
         half = (6.0 - gap) / 4
