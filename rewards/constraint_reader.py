@@ -342,8 +342,8 @@ def _rule_counts(r: _Reader) -> None:
         if obj is None or obj.start != m.end() or _read(r, m.start(), m.end()):
             continue
         n, mode = int(m.group("n")), quals.get(m.group("qual") or "", "plain")
-        if mode != "plain" and obj.used:     # "at least 3 chairs against a wall": a count of the chairs that
-            continue                         # meet the relation, not read (its words stay uncovered)
+        if mode != "plain" and obj.used and _relation_follows(r, obj.end):
+            continue    # "at least 3 chairs against a wall": a count of the chairs meeting it, not read
         lo, hi = {"min": (n, None), "more": (n + 1, None), "max": (0, n), "less": (0, max(n - 1, 0)),
                   "exact": (n, n), "plain": (n, None)}[mode]
         if mode == "plain":
@@ -356,6 +356,12 @@ def _rule_counts(r: _Reader) -> None:
             continue
         r.add(count_check(obj.entity, 0, 0, r.text[m.start():obj.end]), m.start(), obj.end, obj,
               meaning=f"no {obj.entity.label}")
+
+
+def _relation_follows(r: _Reader, pos: int) -> bool:
+    """The next words read after ``pos`` (a relation) follow in the same clause (no "and" before them)."""
+    nxt = next((s for k, (s, e, _) in enumerate(r.words) if s >= pos and r.covered[k]), None)
+    return nxt is not None and " and " not in r.text[pos:nxt + 1]
 
 
 def _read(r: _Reader, start: int, end: int) -> bool:

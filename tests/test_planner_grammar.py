@@ -77,6 +77,7 @@ READINGS = {
     "a free 2 m square in the middle of the room": ["free_area_middle"],
     "1 m of free space in front of the wardrobe": ["wardrobe_free_front"],
     "a spacious bedroom with exactly 2 nightstands": ["room_size", "count_nightstand"],
+    "exactly 1 wardrobe and it must be against a wall": ["count_wardrobe", "wardrobe_against_wall"],
 }
 
 
