@@ -122,6 +122,11 @@ def _rule_free_space(r) -> None:
         r.add(free_area_check(quantity(q), square, bool(m.group("mid")), m.group()), m.start(), m.end())
 
 
+#: Words between the objects and "... apart" / "closer than", and between two objects joined by "and".
+_LINK = re.compile(r"(?: (?:should|must|shall|to|be|are|is|all|always|each|both|not|never|do|does|don't|kept|keep))* ?")
+_AND = re.compile(r" and (?:the |a |an )?")
+
+
 def _rule_apart(r) -> None:
     """Distances between any two objects: "at least 1 m between any 2 pieces of furniture", "no 2 chairs closer
     than 0.5 m", "the desk and the bed at least 2 m apart", "the chair and the desk at most 1 m apart"."""
@@ -137,14 +142,13 @@ def _rule_apart(r) -> None:
                          rf"other|from one another)\b|\b(?:(?:is|are|be|stand|stands|standing|placed|put) )?(?:closer|"
                          rf"nearer) than (?P<q2>{QTY})(?: (?:apart|to each other|from each other|to one another))?",
                          r.text):
-        clause = r.text.rfind(",", 0, m.start()) + 1
-        mentions = [x for x in r.mentions if clause <= x.start and x.end <= m.start()]
-        if not mentions:
-            continue
-        subject, end = mentions[0], m.end()
-        ref = mentions[1] if len(mentions) == 2 and " and " in r.text[subject.end:mentions[1].start] else subject
-        if len(mentions) > 2 or (len(mentions) == 2 and ref is subject):
-            continue
+        mentions = [x for x in r.mentions if x.end <= m.start()]
+        if not mentions or not _LINK.fullmatch(r.text[mentions[-1].end:m.start()]):
+            continue                   # the objects must come right before: "X (and Y) should be ... apart"
+        subject = ref = mentions[-1]
+        if len(mentions) > 1 and _AND.fullmatch(r.text[mentions[-2].end:ref.start]):
+            subject = mentions[-2]
+        end = m.end()
         to = re.compile(r" (?:to|from) ").match(r.text, m.end())   # "no X closer than d to Y"
         if to:
             other = _mention_at(r, to.end())
@@ -171,7 +175,7 @@ def _rule_between(r) -> None:
     for m in re.finditer(r"\bbetween ", r.text):
         a = _mention_at(r, m.end())
         subject = r.before(m.start())
-        if a is None or subject is None:
+        if a is None or subject is None or r.covered[_word_at(r, m.start())]:
             continue
         rest = re.compile(r" and ").match(r.text, a.end)
         b = _mention_at(r, rest.end()) if rest else a if re.search(r"\b(?:2|both)\b", r.text[m.end():a.start]) else None

@@ -221,7 +221,7 @@ def _rule_height(r: _Reader) -> None:
                 rf"(?: (?:high|tall|above the floor|in height))?"]
     for pattern in patterns:
         for m in re.finditer(pattern, r.text):
-            if "deg" in m.group("q"):
+            if "deg" in m.group("q") or _read(r, m.start(), m.end()):
                 continue
             subject = r.before(m.start())
             if subject is None:
