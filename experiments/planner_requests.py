@@ -341,6 +341,9 @@ REQUESTS: list[Request] = [
        lambda r: any(not any(r.in_front(i, b) for i in r.ground() if i != b) for b in r.of(*BEDS))),
     _r("A nightstand on the left of every bed", "refusal", "every bed with a nightstand on its left",
        lambda r: every(r.of(*BEDS), lambda b: any(0 < r.local(b, n)[0] for n in r.of("nightstand")))),
+    _r("The desk faces the bed and the wardrobe", "refusal", "a desk facing a bed and a wardrobe within 30 deg",
+       lambda r: any(any(r.angle(d, b) <= 30 for b in r.of(*BEDS))
+                     and any(r.angle(d, w) <= 30 for w in r.of("wardrobe")) for d in r.of("desk"))),
     _r("Not every chair faces the desk", "refusal", "some chair not facing any desk within 30 deg",
        lambda r: any(all(r.angle(i, j) > 30 for j in r.of("desk")) for i in r.of("chair"))),
 ]

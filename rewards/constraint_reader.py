@@ -32,6 +32,10 @@ _OBJECT_OF = re.compile(r"\b(?:of|to|from|facing|faces|face|behind|beside|near|b
 _QUANTIFIER_OF = re.compile(r"\b(?:none|all|each|any|some|every|both|1|2) of(?: the)? $")
 
 
+#: Two objects joined by "and" / "or".
+_AND_OR = re.compile(r" (?:and|or) (?:the |a |an )?")
+
+
 @dataclass
 class _Mention:
     start: int
@@ -49,6 +53,7 @@ class _Reader:
         self.words = [(m.start(), m.end(), m.group()) for m in re.finditer(r"[a-z0-9.']+", self.text)]
         self.covered = [False] * len(self.words)
         self.mentions = self.find_mentions()
+        self.objects_of: dict[int, str] = {}
 
     @staticmethod
     def normalise(text: str) -> str:
@@ -109,6 +114,9 @@ class _Reader:
             if m is not None:
                 m.used = True
                 self.cover(m.start, m.end)
+        for m in mentions[1:]:  # the objects of a relation (after its subject), and the phrase that names them
+            if m is not None:
+                self.objects_of[m.start] = self.text[start:end]
         self.cover(start, end)
         phrase = self.text[start:end]
         if not check.phrase:
@@ -378,6 +386,11 @@ def read_constraint(constraint: str, room: str = "bedroom") -> Plan:
     r = _Reader(constraint, room)
     for rule in RULES:
         rule(r)
+    # "facing the bed and the wardrobe": a second object of a relation, not read (to either or to both?)
+    for before, m in zip(r.mentions, r.mentions[1:]):
+        if not m.used and before.start in r.objects_of and _AND_OR.fullmatch(r.text[before.end:m.start]):
+            r.plan.not_understood.append(f"'{r.objects_of[before.start]} ... {r.text[before.end:m.end].strip()}' "
+                                         f"(a relation to either or to both: not read)")
     # objects named without any requirement: they should at least be there
     used_keys = {e.key for c in r.plan.checks for e in c.entities}
     for m in r.mentions:

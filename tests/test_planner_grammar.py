@@ -95,6 +95,8 @@ def test_meaning_words_are_read(request_text):
     ("The nightstands beside the bed, not in front of it",          # the bed is not the subject of "in front"
      ["'in front of' (needs an object before and after it)", "not"]),
     ("No chair or desk within 1 m of the bed", ["or"]),
+    ("The desk faces the bed and the wardrobe",                       # to both, or to either?
+     ["'faces ... and the wardrobe' (a relation to either or to both: not read)"]),
     ("At least 3 pieces of furniture against a wall", ["least 3"]),  # a count of the objects meeting a relation
     ("Nightstands on either side of every bed", ["every"]),
 ])
