@@ -226,3 +226,18 @@ def test_generate_only_satisfying_needs_a_checker(tmp_path, monkeypatch, capsys)
                  "--out", str(tmp_path / "g")]) == 2
     assert "two_nightstands is a bedroom task but --room is livingroom" in capsys.readouterr().err
     assert not (tmp_path / "home").exists()  # refused before any training
+
+
+def test_the_adapter_library_keys_adapters_by_the_weights_they_were_trained_on(tmp_path, monkeypatch):
+    """A new shipped prior (or stage-1 adapter) must not reuse an adapter trained on the old one."""
+    from agents.denoiser import ScenePrior
+    from experiments.commands.generate import library_dir
+
+    monkeypatch.setenv("IARCS_HOME", str(tmp_path / "home"))
+    before = library_dir("bedroom", PROMPT)
+    assert library_dir("bedroom", "  " + PROMPT.upper()) == before  # case and spacing do not matter
+    prior = tmp_path / "other_prior.pt"
+    prior.write_bytes(b"other weights")
+    monkeypatch.setattr(ScenePrior, "default_path", staticmethod(lambda room: prior))
+    after = library_dir("bedroom", PROMPT)
+    assert after != before and after.name.split("-")[0] == before.name.split("-")[0]  # same slug, new hash

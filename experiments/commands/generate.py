@@ -3,8 +3,9 @@ reward-synthesis agent), a stage-2 LoRA adapter (trained from the shipped stage-
 the adapter library when one was trained for the same room and constraint), and then N scenes written as
 neutral JSON and ATISS folders, with top-down renders and a metrics report.
 
-The adapter library is ``$IARCS_HOME/adapters/<room>/<constraint slug>/`` (``IARCS_HOME`` defaults to
-``~/.iarcs``): ``adapter/`` (peft), ``reward/`` (program and proposal), ``constraint.txt``.
+The adapter library is ``$IARCS_HOME/adapters/<room>/<constraint slug>-<hash>/`` (``IARCS_HOME`` defaults to
+``~/.iarcs``; the hash covers the constraint and the shipped weights the adapter was trained on): ``adapter/``
+(peft), ``reward/`` (program and proposal), ``constraint.txt``.
 """
 
 from __future__ import annotations
@@ -54,11 +55,26 @@ def library_root() -> Path:
 
 
 def library_dir(room: str, constraint: str) -> Path:
-    """Where the adapter for (room, constraint) lives: a readable slug plus a hash of the normalised text."""
+    """Where the adapter for (room, constraint) lives: a readable slug plus a hash of the normalised text and of
+    the weights it was trained on (the shipped prior and stage-1 adapter: an adapter belongs to them, so a new
+    prior or stage-1 adapter trains anew instead of reusing one that no longer fits)."""
     norm = " ".join(constraint.lower().split())
     slug = re.sub(r"[^a-z0-9]+", "_", norm).strip("_")[:40]
-    digest = hashlib.sha1(f"{room}|{norm}".encode()).hexdigest()[:8]
+    digest = hashlib.sha1(f"{room}|{norm}|{shipped_weights_id(room)}".encode()).hexdigest()[:8]
     return library_root() / room / f"{slug}-{digest}"
+
+
+def shipped_weights_id(room: str) -> str:
+    """A digest of the shipped prior and stage-1 adapter files of ``room`` (those that exist)."""
+    from agents.denoiser import ScenePrior
+    from agents.train import stage1_adapter_path
+
+    files = [ScenePrior.default_path(room), stage1_adapter_path(room) / "adapter_model.safetensors"]
+    digest = hashlib.sha256()
+    for path in files:
+        if path.exists():
+            digest.update(path.read_bytes())
+    return digest.hexdigest()[:16]
 
 
 def matching_task(constraint: str) -> str | None:
