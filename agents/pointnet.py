@@ -28,9 +28,11 @@ class PointMaxPool(torch.autograd.Function):
         pooled, sub = h.new_empty(b, f), h.new_empty(b, len(subset), f)
         arg = torch.empty(b, f, dtype=torch.long, device=h.device)
         for i in range(0, b, rows):
-            z = h[i:i + rows] @ w.T  # the bias is the same at every point: added after the max
-            torch.max(z, dim=1, out=(pooled[i:i + rows], arg[i:i + rows]))
-            torch.index_select(z, 1, subset, out=sub[i:i + rows])
+            # (rows, F, P), points last: the max runs along contiguous memory. The bias is the same at every
+            # point: added after the max.
+            z = torch.matmul(w, h[i:i + rows].transpose(1, 2))
+            torch.max(z, dim=2, out=(pooled[i:i + rows], arg[i:i + rows]))
+            sub[i:i + rows] = torch.index_select(z, 2, subset).transpose(1, 2)
         c = bias.to(h.dtype)
         pooled.add_(c).relu_()
         sub.add_(c).relu_()
@@ -42,8 +44,9 @@ class PointMaxPool(torch.autograd.Function):
         h, weight, subset, pooled, arg, sub = ctx.saved_tensors
         b, p, k = h.shape
         w = weight.to(h.dtype)
-        g_pooled = (g_pooled * (pooled > 0)).to(h.dtype)  # (B, F): through the relu to the arg-max points
-        g_sub = (g_sub * (sub > 0)).to(h.dtype)  # (B, K, F)
+        # through the relu (its own backward kernel: one pass) to the arg-max points (B, F) and the subset (B, K, F)
+        g_pooled = torch.ops.aten.threshold_backward(g_pooled, pooled, 0).to(h.dtype)
+        g_sub = torch.ops.aten.threshold_backward(g_sub, sub, 0).to(h.dtype)
         g_weight = torch.einsum("bsf,bsc->fc", g_sub, h[:, subset])
         g_h = torch.zeros_like(h)
         rows = PointMaxPool.rows_per_chunk(h, weight)
