@@ -106,9 +106,9 @@ def synthesize_checked(agent, sandbox, room: str, constraint: str, attempts: int
                 raise ValueError(
                     f"{who} did not understand {', '.join(repr(w) for w in lost)} in {constraint!r}; those words "
                     "change what is asked, so a program without them could reward something else or the opposite. "
-                    "Rephrase the request (docs: what the planner understands, `iarcs reward synthesize --help`), "
-                    "use an LLM (--model), or pass --allow-partial (allow_partial: true in a task config) to use "
-                    "the program anyway, marked partial")
+                    "Rephrase the request (what the planner understands: docs/results/planner_requests.md, "
+                    "`iarcs reward synthesize --help`), use an LLM (--model), or pass --allow-partial (allow_partial: "
+                    "true in a task config) to use the program anyway, marked partial")
             proposal.partial = bool(lost)
             return proposal, messages
         feedback = result.message
