@@ -17,9 +17,11 @@ $(STAMP): pyproject.toml
 	rm -f $(VENV)/.installed-*; touch $(STAMP)
 
 $(VIEWER): viewer/package.json viewer/package-lock.json viewer/src/viewer.js
-	@if command -v npm >/dev/null; then \
-		cd viewer && npm ci --no-audit --no-fund --loglevel=error && npm run --silent build; \
-	else echo "npm not found: the 3D viewer is not built (install node and npm, then run make viewer)"; fi
+	@if ! command -v npm >/dev/null; then \
+		echo "npm not found: the 3D viewer is not built (install node and npm, then run make viewer)"; \
+	elif (cd viewer && npm ci --no-audit --no-fund --loglevel=error); then \
+		cd viewer && npm run --silent build; \
+	else echo "npm could not install the viewer's packages (is the npm registry reachable?): the 3D viewer is not built"; fi
 
 viewer: $(VIEWER)
 
