@@ -365,19 +365,10 @@ def auc(pos: np.ndarray, neg: np.ndarray) -> float:
 
 
 def scores(code: str, layouts: list[Layout]) -> np.ndarray:
-    """A program's reward on layouts, in-process (trusted: the planner's own programs)."""
-    import torch
+    """A program's reward on layouts (in the reward sandbox, as every written program runs)."""
+    from rewards.planner import program_values
 
-    from iarcs_env.scene import SceneBatch
-    from rewards.scene_api import Scene
-
-    namespace = {"math": math, "torch": torch}
-    exec(compile(code, "<reward>", "exec"), namespace)
-    out = []
-    for start in range(0, len(layouts), 100):
-        batch = SceneBatch.from_layouts(layouts[start:start + 100], layouts[0].room_type)
-        out.append(namespace["reward"](Scene(batch)).detach().double().numpy())
-    return np.concatenate(out)
+    return program_values(code, layouts[0].room_type, layouts)
 
 
 def evaluate(request: Request, rooms: dict[str, list[Layout]]) -> dict:

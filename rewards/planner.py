@@ -44,7 +44,6 @@ import textwrap
 from string import Template
 
 import numpy as np
-import torch
 
 from .constraint_reader import read_constraint
 from .planner_checks import (Check, EMPHASIS_CAP, EMPHASIS_FACTOR, EMPTY_ROOM_KINDS, IMPLIED_WEIGHT, OBJECTS,
@@ -128,19 +127,49 @@ def render(plan: Plan, values: dict[str, float] | None = None) -> str:
     return "\n".join(lines)
 
 
-def run_program(code: str, plan: Plan, layouts) -> tuple[np.ndarray, dict[str, np.ndarray]]:
-    """A program of mine on layouts, in-process (the planner's own code, written just now): its reward and each
-    check's clean value, (n,) each."""
-    from iarcs_env.scene import SceneBatch
-    from .scene_api import Scene
+#: Scenes per request to the sandbox worker when scoring many rooms.
+SCORE_CHUNK = 256
+_SANDBOXES: dict = {}
 
-    namespace = {"math": math, "torch": torch}
-    exec(compile(code, "<planner program>", "exec"), namespace)
-    scene = Scene(SceneBatch.from_layouts(list(layouts), plan.room))
-    with torch.no_grad():
-        reward = namespace["reward"](scene).double().numpy()
-        parts = {c.key: namespace["clean"](namespace[f"check_{c.key}"](scene)).double().numpy() for c in plan.checks}
-    return reward, parts
+
+def _sandbox(room: str):
+    """A reward sandbox for ``room``, started once per process and reused (a worker takes about a second to start;
+    loading a program into it a few milliseconds). Closed when the process exits."""
+    import atexit
+
+    from .sandbox import RewardSandbox
+
+    if room not in _SANDBOXES or _SANDBOXES[room].pid is None:
+        _SANDBOXES[room] = box = RewardSandbox(room=room)
+        atexit.register(box.close)
+    return _SANDBOXES[room]
+
+
+def program_values(code: str, room: str, layouts) -> np.ndarray:
+    """The ``reward(scene)`` of a program on layouts, (n,), run in the reward sandbox like every written program
+    (the planner's own included). A program that does not load or fails raises ValueError with the reason."""
+    from iarcs_env.scene import SceneBatch
+
+    box = _sandbox(room)
+    loaded = box.load(code)
+    if not loaded.ok:
+        raise ValueError(loaded.message)
+    layouts = list(layouts)
+    values = []
+    for start in range(0, len(layouts), SCORE_CHUNK):
+        scored = box.score(SceneBatch.from_layouts(layouts[start:start + SCORE_CHUNK], room))
+        if not scored.ok:
+            raise ValueError(scored.message)
+        values.append(scored.values)
+    return np.concatenate(values)
+
+
+def run_program(code: str, plan: Plan, layouts) -> tuple[np.ndarray, dict[str, np.ndarray]]:
+    """A program of ``plan`` on layouts, in the sandbox: its reward and each check's clean value, (n,) each (a check
+    is scored as the same program with ``reward`` returning that check alone)."""
+    parts = {c.key: program_values(f"{code}\n\ndef reward(scene):\n    return clean(check_{c.key}(scene))\n",
+                                   plan.room, layouts) for c in plan.checks}
+    return program_values(code, plan.room, layouts), parts
 
 
 def program_constants(code: str) -> dict[str, float]:
