@@ -37,7 +37,8 @@ POINTS_MAX = 0.10  # Col_obj and R_out within 10 points of the data's
 FIGURES = [("Col_obj", "Col_obj", "pct"), ("Col_scene", "Col_scene", "pct"), ("R_out", "R_out", "pct"),
            ("R_off_floor", "R_off_floor", "pct"), ("R_reach", "R_reach", "pct"), ("R_walkable", "R_walkable", "f3"),
            ("mean_objects", "objects / room", "f2"), ("class_kl_realism", "class KL (eps 1e-3)", "f4"),
-           ("count_tvd", "object-count TVD", "f3"), ("KL_class", "KL_class (eps 1e-6)", "f4"),
+           ("count_tvd", "object-count TVD", "f3"), ("beds_tvd", "beds-per-room TVD", "f3"),
+           ("KL_class", "KL_class (eps 1e-6)", "f4"),
            ("count_distance", "count EMD", "f3"), ("FID", "FID", "f2"), ("KID", "KID x 1000", "kid"),
            ("SCA", "SCA", "pct")]
 PRIORS = ("shipped", "trained")
@@ -73,16 +74,17 @@ def export(state: str, dest: str) -> dict:
 
 
 def figures(samples: str, reference: str) -> dict:
-    """The fidelity figures ``iarcs evaluate`` does not report: object-count TVD and class KL (eps 1e-3) of
-    ``iarcs_env.datasets.realism`` (the targets' figures), and the reference's own metrics."""
+    """The fidelity figures ``iarcs evaluate`` does not report: object-count and beds-per-room TVD and class KL
+    (eps 1e-3) of ``iarcs_env.datasets.realism`` (the targets' figures), and the reference's own metrics."""
     from iarcs_env.datasets import load_layouts
     from iarcs_env.datasets.realism import class_kl, count_tvd
     from iarcs_env.metrics import evaluate_layouts
+    from iarcs_env.relations import BEDS
 
     gen, ref = load_layouts(samples, "bedroom"), load_layouts(reference, "bedroom")
     ref = ref[:len(gen)]
-    return {"count_tvd": count_tvd(ref, gen), "class_kl_realism": class_kl(ref, gen),
-            "reference": evaluate_layouts(ref)}
+    return {"count_tvd": count_tvd(ref, gen), "beds_tvd": count_tvd(ref, gen, BEDS),
+            "class_kl_realism": class_kl(ref, gen), "reference": evaluate_layouts(ref)}
 
 
 def bed_ablation(prior_path: str, reference: str, device: str, timesteps=(50, 100, 200)) -> dict:

@@ -80,7 +80,7 @@ def test_the_gpu_run_passes_end_to_end_on_the_cpu_within_its_budget(tmp_path):
         assert key in ev["reference"]
     assert "two_nightstands" in ev["reference"]["relations"]
     trained = ev["trained"]
-    for key in ("Col_obj", "Col_scene", "R_out", "KL_class", "count_tvd", "class_kl_realism", "relations",
+    for key in ("Col_obj", "Col_scene", "R_out", "KL_class", "count_tvd", "beds_tvd", "class_kl_realism", "relations",
                 "bed_ablation", "targets"):
         assert key in trained, key
     assert trained["n_scenes"] == 20 and "per_scene" not in trained

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -216,6 +217,11 @@ def test_load_layouts_procedural_and_arguments():
 def test_realism_figure_definitions():
     a = generate_layouts("bedroom", 30, seed=0)
     assert count_tvd(a, a) == 0.0 and class_kl(a, a) == pytest.approx(0.0, abs=1e-12)
+    # beds per room: rooms without a bed against the same rooms, counted on beds only
+    beds = ("double_bed", "single_bed", "kids_bed")
+    no_bed = [replace(l, labels=["wardrobe" if lbl in beds else lbl for lbl in l.labels]) for l in a]
+    with_bed = sum(any(lbl in beds for lbl in l.labels) for l in a) / len(a)
+    assert count_tvd(a, no_bed, beds) == pytest.approx(with_bed) and count_tvd(a, a, beds) == 0.0
     assert median_area(a) == pytest.approx(np.median([l.floor.area for l in a]))
     # the KL is finite when the generator misses a class, and positive
     b = [l for l in a if "wardrobe" not in l.labels]

@@ -32,18 +32,25 @@ from ..scene import Layout, box_corners_xz
 KL_EPS = 1e-3
 
 
-def count_histogram(layouts: Sequence[Layout], max_count: int | None = None) -> np.ndarray:
-    """Normalised histogram of objects per room over 0..max_count (default: the largest count seen)."""
-    counts = np.array([len(l) for l in layouts], dtype=int)
+def object_counts(layouts: Sequence[Layout], classes=None) -> np.ndarray:
+    """Objects per room (of ``classes`` only, when given)."""
+    return np.array([len(l) if classes is None else sum(lbl in classes for lbl in l.labels) for l in layouts],
+                    dtype=int)
+
+
+def count_histogram(layouts: Sequence[Layout], max_count: int | None = None, classes=None) -> np.ndarray:
+    """Normalised histogram of objects (of ``classes``) per room over 0..max_count (default: the largest count)."""
+    counts = object_counts(layouts, classes)
     n = max_count if max_count is not None else int(counts.max(initial=0))
     h = np.bincount(np.minimum(counts, n), minlength=n + 1).astype(float)
     return h / max(h.sum(), 1.0)
 
 
-def count_tvd(real: Sequence[Layout], generated: Sequence[Layout]) -> float:
-    """Total-variation distance between the object-count histograms (0 best, 1 worst)."""
-    n = max(max((len(l) for l in real), default=0), max((len(l) for l in generated), default=0))
-    return float(0.5 * np.abs(count_histogram(real, n) - count_histogram(generated, n)).sum())
+def count_tvd(real: Sequence[Layout], generated: Sequence[Layout], classes=None) -> float:
+    """Total-variation distance between the histograms of objects (of ``classes``: e.g. beds) per room (0 best,
+    1 worst)."""
+    n = int(max(object_counts(real, classes).max(initial=0), object_counts(generated, classes).max(initial=0)))
+    return float(0.5 * np.abs(count_histogram(real, n, classes) - count_histogram(generated, n, classes)).sum())
 
 
 def class_frequencies(layouts: Sequence[Layout], classes: Sequence[str] | None = None) -> np.ndarray:
