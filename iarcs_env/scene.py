@@ -291,5 +291,6 @@ def scale_floor_points(pts: torch.Tensor, stats: "DatasetStats") -> torch.Tensor
     dataset's translation bounds in either translation frame (so the condition carries the room's size),
     normals unchanged."""
     lo, hi = stats.translation_bounds(pts)
-    xz = 2 * (pts[..., :2] - lo[[0, 2]]) / (hi[[0, 2]] - lo[[0, 2]]) - 1
+    xz_lo, xz_hi = lo[0:3:2], hi[0:3:2]  # slices, not a list index: no host-to-device copy on CUDA
+    xz = 2 * (pts[..., :2] - xz_lo) / (xz_hi - xz_lo) - 1
     return torch.cat([xz, pts[..., 2:]], -1)
