@@ -10,48 +10,33 @@ Network, for x_t of shape (B, N, 8 + K) (N object slots; geometry 8 = translatio
   (slot identity, for rooms in a canonical slot order: ``PretrainConfig.canonical_order``);
 * floor encoder: a PointNet over the 256 boundary points with inward normals (x, z, nx, nz): per-point
   MLP 4 -> 64 -> 64 -> 512, max-pool over points, then 512 -> 64 (widths [4, 64, 64, 512, 64]); the 64-d
-  global floor feature is mapped to ``floor_tokens`` context tokens;
-* per-point floor tokens (``floor_point_tokens`` > 0): the boundary points subsampled evenly along the
-  boundary (every P / floor_point_tokens-th point; repeated when P is smaller) keep their 512-d
-  per-point PointNet features (which encode the point's position and normal), projected to width d and
-  added to a projection of the global feature; cross-attention then sees where the walls are, not just a
-  pooled summary, so each slot can attend to the walls near it;
-* wall features (``floor_slot_features``): each slot's noisy (x, z) measured against the subsampled boundary
-  points: offset to the nearest point, its inward normal and the signed distance along that normal, and
-  the same for the nearest point of another wall (normal > 60 degrees away): 10 numbers through an MLP
-  added to the slot embedding. Without them the network had to infer wall distances from dot-product
-  attention, and trained priors ignored the floor entirely (the same loss with shuffled floors). With
-  ``room_frame`` (slot translations in the room frame of :class:`iarcs_env.stats.DatasetStats`) they are
-  measured in the floor's bounding-box frame (its walls at +-1), plus the floor's half-extents and, for
-  both walls, the gap in metres between the slot's (noisy) oriented footprint and the wall (4 more
-  numbers; they need the metric scale of the features, :meth:`SceneDenoiser.set_metric_scale`). The room
-  frame itself is what made placement against walls precise (objects stand 1-3 cm from them in the data,
-  the out-of-bound test tolerates 5 cm): docs/results/prior_bedroom_small.md;
-* timestep: sinusoidal embedding -> MLP; plus, with ``floor_adaln``, a linear map of the global floor
-  feature, so the adaptive layer norm of every sub-layer is modulated by the room shape; it drives
-  shift / scale / gate per sub-layer (zero-initialised as in DiT's adaLN-Zero);
-* pair bias (``pair_bias``): for every pair of slots, the other slot's noisy centre in this slot's frame,
-  the gaps between their footprints and their relative yaw, in metres, through an MLP to one additive
-  bias per layer and head on the self-attention logits (a relative-geometry bias, as a nightstand's place
-  is set by its bed's);
+  global floor feature is mapped to ``floor_tokens`` context tokens, and ``floor_point_tokens`` boundary
+  points, subsampled evenly along the boundary, keep their 512-d per-point features as more tokens (projected
+  to width d, plus a projection of the global feature), so cross-attention sees where the walls are;
+* slot translations (x, z) are in the room frame of :class:`iarcs_env.stats.DatasetStats` (each centre over
+  its free half-range in the floor's bounding box, +-1 = touching a wall), which made placement against walls
+  precise (docs/results/prior_bedroom_small.md);
+* wall features: each slot's noisy (x, z) against the subsampled boundary points, in the floor's
+  bounding-box frame: offset to the nearest point, its inward normal and signed distance, the same for the
+  nearest point of another wall, the floor's half-extents and both footprint-to-wall gaps in metres
+  (:meth:`SceneDenoiser.wall_features`; 14 numbers through an MLP added to the slot embedding);
+* timestep: sinusoidal embedding -> MLP, plus a linear map of the global floor feature; it drives the
+  shift / scale / gate of every sub-layer's adaptive layer norm (zero-initialised as in DiT's adaLN-Zero);
 * ``num_layers`` blocks of self-attention over the slots, cross-attention to the floor tokens and a GELU
   feed-forward; attention uses explicit ``q_proj``, ``k_proj``, ``v_proj``, ``out_proj`` ``nn.Linear``
   layers (LoRA targets exactly these; ``nn.MultiheadAttention`` would bypass LoRA on its fast path);
 * output: epsilon (or x0, or v: the schedule's ``prediction_type``) of shape (B, N, 8 + K).
 
-:meth:`SceneDenoiser.encode_floor` returns one tensor (B, rows, d): row 0 is the floor's adaLN vector (with
-``floor_adaln``), then the cross-attention tokens, then (with ``floor_slot_features``) the subsampled raw
-boundary points packed into ceil(4 K / d) rows; one tensor, so that it can be cached over a rollout and
-concatenated for classifier-free guidance.
+:meth:`SceneDenoiser.encode_floor` returns one tensor (B, rows, d): row 0 is the floor's adaLN vector, then
+the cross-attention tokens, then the subsampled raw boundary points and the floor's half-extents packed into
+rows of width d; one tensor, so that it can be cached over a rollout and concatenated for classifier-free
+guidance.
 
 Unconditional predictions (classifier-free guidance, condition dropout in training) use an all-zero floor
 input, which no real floor produces (its normals are unit vectors).
 
-The dataclass defaults of the floor options (``floor_point_tokens=0``, ``floor_adaln=False``,
-``floor_slot_features=False``, ``room_frame=False``, ``pair_bias=False``, ``slot_embedding=False``) are the
-original design, so
-checkpoints written before these fields existed load unchanged; the ``paper`` and ``small`` presets switch
-on the first four (``pair_bias`` did not measurably help: docs/results/prior_bedroom_small.md).
+This is the one design (every shipped checkpoint's). The switches of earlier designs (:data:`RETIRED_FIELDS`)
+are gone; a saved config may still name them with the values of this design, any other value is refused.
 """
 
 from __future__ import annotations
@@ -77,7 +62,7 @@ from .pointnet import PointNetEncoder
 
 GEOMETRY_DIM = 8
 CHECKPOINT_FORMAT = "iarcs-scene-prior"
-CHECKPOINT_VERSION = 1  # new DenoiserConfig fields default to the old architecture: still version 1
+CHECKPOINT_VERSION = 1  # DenoiserConfig fields of earlier designs: drop_retired_fields
 CHECKPOINT_DIR = Path(__file__).resolve().parent / "checkpoints"
 MAX_SLOTS = 32  # rows of the slot-index embedding (DenoiserConfig.slot_embedding); the first N are used
 
@@ -100,29 +85,10 @@ class DenoiserConfig:
     """PointNet widths: per-point MLP up to the second-to-last width, max-pool, then a linear map to the
     last width (the floor feature)."""
     floor_tokens: int = 4
-    """Context tokens the global floor feature is mapped to for cross-attention (1 makes the attention
-    weights trivially 1 when there are no point tokens)."""
-    floor_point_tokens: int = 0
-    """Per-point floor tokens for cross-attention: the boundary points' per-point PointNet features,
-    subsampled evenly along the boundary to this many (0: none, the original design)."""
-    floor_adaln: bool = False
-    """Add a linear map of the global floor feature to the timestep embedding that drives the adaptive
-    layer norm (False: the original design)."""
-    floor_slot_features: bool = False
-    """Give every slot its (noisy) position relative to the walls: the offset to the nearest of the
-    ``floor_point_tokens`` boundary points, that point's inward normal and the signed distance along it,
-    and the same for the nearest point of another wall (normals more than 60 degrees apart), through an
-    MLP added to the slot embedding (needs ``floor_point_tokens`` > 0; False: the original design)."""
-    room_frame: bool = False
-    """The slot translations (x, z) are in the ``"room"`` frame (each centre over its free half-range in
-    the floor's bounding box, +-1 = touching a wall; :func:`iarcs_env.scene.translation_scale`), the
-    ``translation_frame`` of the prior's DatasetStats; the wall features then add the footprint-to-wall
-    gaps. False: the ``"dataset"`` frame (the original design)."""
-    pair_bias: bool = False
-    """Bias every self-attention layer's logits by the metric geometry of each pair of slots (the other
-    slot's offset in this slot's frame, the gaps between their footprints, their relative yaw) through an
-    MLP (:meth:`SceneDenoiser.pair_features`): object-to-object placement (a nightstand beside a bed) needs
-    the precision the room frame gave against walls. Needs ``room_frame`` (False: the original design)."""
+    """Context tokens the global floor feature is mapped to for cross-attention, beside the point tokens."""
+    floor_point_tokens: int = 64
+    """Boundary points, subsampled evenly along the boundary, whose per-point PointNet features are
+    cross-attention tokens and against which the wall features measure each slot (> 0)."""
     slot_embedding: bool = False
     """Add a learned embedding of each slot's index to its token (a table of ``MAX_SLOTS`` rows, the first N
     used), as DiffuScene's instance embedding: slots get an identity and the network is no longer
@@ -133,13 +99,11 @@ class DenoiserConfig:
         self.pointnet = tuple(int(v) for v in self.pointnet)
         if self.width % self.num_heads:
             raise ValueError(f"width {self.width} is not divisible by num_heads {self.num_heads}")
-        if self.floor_tokens < 0 or self.floor_point_tokens < 0 or self.floor_tokens + self.floor_point_tokens < 1:
-            raise ValueError(f"need at least one floor token; got floor_tokens={self.floor_tokens}, "
-                             f"floor_point_tokens={self.floor_point_tokens}")
-        if self.floor_slot_features and not self.floor_point_tokens:
-            raise ValueError("floor_slot_features needs floor_point_tokens > 0 (the boundary points it measures)")
-        if self.pair_bias and not (self.room_frame and self.floor_slot_features):
-            raise ValueError("pair_bias needs room_frame and floor_slot_features (it measures slots in metres)")
+        if self.floor_point_tokens < 1:
+            raise ValueError(f"floor_point_tokens must be > 0 (the boundary points the wall features measure); "
+                             f"got {self.floor_point_tokens}")
+        if self.floor_tokens < 0:
+            raise ValueError(f"floor_tokens must be >= 0; got {self.floor_tokens}")
         if len(self.pointnet) < 3 or self.pointnet[0] != 4:
             raise ValueError(f"pointnet widths must start with 4 (x, z, nx, nz) and have >= 3 entries; "
                              f"got {list(self.pointnet)}")
@@ -147,27 +111,26 @@ class DenoiserConfig:
     @classmethod
     def paper(cls) -> "DenoiserConfig":
         """iARCS / MiDiffusion size: 8 layers, width 512, 4 heads, feed-forward 2048, dropout 0.1, PointNet
-        [4, 64, 64, 512, 64]; floor conditioning through adaLN and 64 per-point tokens as in ``small``."""
-        return cls(floor_point_tokens=64, floor_adaln=True, floor_slot_features=True, room_frame=True)
+        [4, 64, 64, 512, 64], 64 boundary-point tokens (the dataclass defaults)."""
+        return cls()
 
     @classmethod
     def small(cls) -> "DenoiserConfig":
         """CPU default: a 20-step DDIM rollout of 32 bedrooms in about a second on 2 cores."""
-        return cls(num_layers=6, width=128, num_heads=4, ff_dim=512, dropout=0.0, floor_point_tokens=64,
-                   floor_adaln=True, floor_slot_features=True, room_frame=True)
+        return cls(num_layers=6, width=128, num_heads=4, ff_dim=512, dropout=0.0)
 
     @classmethod
     def tiny(cls) -> "DenoiserConfig":
-        """For tests only (with every option on, ``pair_bias`` included)."""
+        """For tests only."""
         return cls(num_layers=1, width=32, num_heads=2, ff_dim=64, dropout=0.0, pointnet=(4, 16, 32, 16),
-                   floor_tokens=2, floor_point_tokens=8, floor_adaln=True, floor_slot_features=True, room_frame=True,
-                   pair_bias=True)
+                   floor_tokens=2, floor_point_tokens=8)
 
     @classmethod
     def from_preset(cls, name: str, **overrides) -> "DenoiserConfig":
         if name not in PRESETS:
             raise ValueError(f"unknown model preset {name!r}; choose one of: {', '.join(PRESETS)}")
         base = asdict(PRESETS[name]())
+        overrides = drop_retired_fields(overrides, "model settings")
         unknown = sorted(set(overrides) - set(base))
         if unknown:
             raise ValueError(f"unknown denoiser field(s) {', '.join(unknown)}; known: {', '.join(base)}")
@@ -175,6 +138,24 @@ class DenoiserConfig:
 
 
 PRESETS = {"paper": DenoiserConfig.paper, "small": DenoiserConfig.small, "tiny": DenoiserConfig.tiny}
+
+#: Switches of earlier designs and the value every shipped checkpoint has (the one design now); a saved config
+#: (checkpoint, a run's ``model`` settings) may still carry them at these values.
+RETIRED_FIELDS = {"floor_adaln": True, "floor_slot_features": True, "room_frame": True, "pair_bias": False}
+
+
+def drop_retired_fields(values: dict, where: str = "denoiser config") -> dict:
+    """``values`` (DenoiserConfig fields) without :data:`RETIRED_FIELDS`; a ValueError where one of them, or
+    ``floor_point_tokens`` (0 was "none"), asks for a design this version no longer runs. Every saved or
+    configured denoiser config is read through this."""
+    bad = [(k, values[k]) for k, kept in RETIRED_FIELDS.items() if k in values and values[k] != kept]
+    if "floor_point_tokens" in values and values["floor_point_tokens"] == 0:
+        bad.append(("floor_point_tokens", 0))
+    if bad:
+        key, value = bad[0]
+        raise ValueError(f"{where}: made by an earlier design of the denoiser ({key}={value!r}) that this version "
+                         "of iARCS no longer runs; use the iARCS version that made it")
+    return {k: v for k, v in values.items() if k not in RETIRED_FIELDS}
 
 
 # --- building blocks -----------------------------------------------------------------------------------
@@ -192,16 +173,14 @@ class Attention(nn.Module):
         self.v_proj = nn.Linear(kv, dim)
         self.out_proj = nn.Linear(dim, dim)
 
-    def forward(self, x: torch.Tensor, context: torch.Tensor | None = None, bias: torch.Tensor | None = None
-                ) -> torch.Tensor:
-        """``bias`` (B, heads, N, M): added to the attention logits."""
+    def forward(self, x: torch.Tensor, context: torch.Tensor | None = None) -> torch.Tensor:
         ctx = x if context is None else context
         b, n, d = x.shape
         m = ctx.shape[1]
         q = self.q_proj(x).view(b, n, self.num_heads, self.head_dim).transpose(1, 2)
         k = self.k_proj(ctx).view(b, m, self.num_heads, self.head_dim).transpose(1, 2)
         v = self.v_proj(ctx).view(b, m, self.num_heads, self.head_dim).transpose(1, 2)
-        o = F.scaled_dot_product_attention(q, k, v, attn_mask=bias, dropout_p=self.dropout if self.training else 0.0)
+        o = F.scaled_dot_product_attention(q, k, v, dropout_p=self.dropout if self.training else 0.0)
         return self.out_proj(o.transpose(1, 2).reshape(b, n, d))
 
 
@@ -226,19 +205,18 @@ class DenoiserBlock(nn.Module):
         nn.init.zeros_(self.ada[1].weight)
         nn.init.zeros_(self.ada[1].bias)
 
-    def forward(self, x: torch.Tensor, temb: torch.Tensor, context: torch.Tensor,
-                pair_bias: torch.Tensor | None = None) -> torch.Tensor:
+    def forward(self, x: torch.Tensor, temb: torch.Tensor, context: torch.Tensor) -> torch.Tensor:
         s1, c1, g1, s2, c2, g2, s3, c3, g3 = self.ada(temb).chunk(9, dim=-1)
-        x = x + g1[:, None] * self.self_attn(modulate(self.norm1(x), s1, c1), bias=pair_bias)
+        x = x + g1[:, None] * self.self_attn(modulate(self.norm1(x), s1, c1))
         x = x + g2[:, None] * self.cross_attn(modulate(self.norm2(x), s2, c2), context)
         x = x + g3[:, None] * self.ff(modulate(self.norm3(x), s3, c3))
         return x
 
 
-WALL_FEATURES = 10  # SceneDenoiser.wall_features: (offset 2, normal 2, signed distance 1) x 2 walls
-PAIR_FEATURES = 6  # per pair of slots: offset in the first's frame (2), footprint gaps (2), relative yaw (2)
-ROOM_FRAME_FEATURES = 4  # ... plus the floor's half-extents (x, z) and the footprint-to-wall gaps of both walls
-PACKED_EXTENTS = 2  # the floor's half-extents, packed after the raw boundary points in the room frame
+# SceneDenoiser.wall_features: (offset 2, normal 2, signed distance 1) x 2 walls, the floor's half-extents (x, z)
+# and the footprint-to-wall gaps of both walls
+WALL_FEATURES = 14
+PACKED_EXTENTS = 2  # the floor's half-extents, packed after the raw boundary points
 
 
 def point_subset(num_points: int, k: int, device=None) -> torch.Tensor:
@@ -277,22 +255,13 @@ class SceneDenoiser(nn.Module):
         self.floor_encoder = PointNetEncoder(config.pointnet)
         g = config.pointnet[-1]
         self.floor_proj = nn.Linear(g, config.floor_tokens * d) if config.floor_tokens else None
-        if config.floor_point_tokens:
-            self.floor_point_proj = nn.Linear(config.pointnet[-2], d)
-            self.floor_point_global = nn.Linear(g, d)
+        self.floor_point_proj = nn.Linear(config.pointnet[-2], d)
+        self.floor_point_global = nn.Linear(g, d)
         self.floor_norm = nn.LayerNorm(d)
-        if config.floor_adaln:
-            self.floor_adaln = nn.Linear(g, d)
-        if config.floor_slot_features:
-            self.wall_embed = nn.Sequential(nn.Linear(self.num_wall_features, d), nn.GELU(), nn.Linear(d, d))
-        if config.room_frame:
-            # translation (lo x, lo z, hi x, hi z), then the same of the half sizes
-            self.register_buffer("metric_bounds", torch.tensor([-1.0, -1.0, 1.0, 1.0] * 2), persistent=False)
-        if config.pair_bias:  # one bias per layer and head; zero-initialised: training starts without it
-            self.pair_embed = nn.Sequential(nn.Linear(PAIR_FEATURES, 64), nn.GELU(),
-                                            nn.Linear(64, config.num_layers * config.num_heads))
-            nn.init.zeros_(self.pair_embed[2].weight)
-            nn.init.zeros_(self.pair_embed[2].bias)
+        self.floor_adaln = nn.Linear(g, d)
+        self.wall_embed = nn.Sequential(nn.Linear(WALL_FEATURES, d), nn.GELU(), nn.Linear(d, d))
+        # translation (lo x, lo z, hi x, hi z), then the same of the half sizes
+        self.register_buffer("metric_bounds", torch.tensor([-1.0, -1.0, 1.0, 1.0] * 2), persistent=False)
         self.blocks = nn.ModuleList(DenoiserBlock(config) for _ in range(config.num_layers))
         self.final_norm = nn.LayerNorm(d, elementwise_affine=False, eps=1e-6)
         self.final_ada = nn.Sequential(nn.SiLU(), nn.Linear(d, 2 * d))
@@ -301,27 +270,22 @@ class SceneDenoiser(nn.Module):
             nn.init.zeros_(lin.weight)
             nn.init.zeros_(lin.bias)
 
-    @property
-    def num_wall_features(self) -> int:
-        return WALL_FEATURES + ROOM_FRAME_FEATURES * int(self.config.room_frame)
-
     def _packed_floor_size(self) -> int:
         """Numbers of the raw floor packed at the end of the context: the (x, z, nx, nz) of the point
-        subset, plus the floor's half-extents in the room frame."""
-        return 4 * self.config.floor_point_tokens + PACKED_EXTENTS * int(self.config.room_frame)
+        subset, plus the floor's half-extents."""
+        return 4 * self.config.floor_point_tokens + PACKED_EXTENTS
 
     def set_metric_scale(self, stats: DatasetStats) -> None:
         """Take the feature scaling of ``stats`` (translation and size bounds), with which the room-frame
         wall features measure footprint-to-wall gaps in metres. Not saved with the weights: the prior's
         statistics carry it (:class:`ScenePrior` sets it); until set, features are taken as metres."""
-        if self.config.room_frame:
-            self.metric_bounds.copy_(torch.tensor([stats.bounds_translations[i] for i in (0, 2, 3, 5)]
-                                                  + [stats.bounds_sizes[i] for i in (0, 2, 3, 5)]))
+        self.metric_bounds.copy_(torch.tensor([stats.bounds_translations[i] for i in (0, 2, 3, 5)]
+                                              + [stats.bounds_sizes[i] for i in (0, 2, 3, 5)]))
 
     def encode_floor(self, floor: torch.Tensor) -> torch.Tensor:
-        """Floor condition (B, P, 4) -> context (B, [1 +] floor_tokens + point tokens, width): with
-        ``floor_adaln`` row 0 is the floor's adaLN vector, the other rows the cross-attention tokens.
-        Zeros = unconditional."""
+        """Floor condition (B, P, 4) -> context (B, 1 + floor_tokens + point tokens + packed rows, width): row 0
+        is the floor's adaLN vector, then the cross-attention tokens, then the raw (x, z, nx, nz) of the point
+        subset and the floor's half-extents, packed into rows of width d. Zeros = unconditional."""
         cfg = self.config
         b, p = floor.shape[:2]
         subset = point_subset(p, cfg.floor_point_tokens, floor.device)
@@ -329,35 +293,25 @@ class SceneDenoiser(nn.Module):
         tokens = []
         if self.floor_proj is not None:
             tokens.append(self.floor_proj(f).view(b, cfg.floor_tokens, cfg.width))
-        if cfg.floor_point_tokens:
-            tokens.append(self.floor_point_proj(per_point) + self.floor_point_global(f)[:, None])
-        ctx = self.floor_norm(torch.cat(tokens, 1))
-        if cfg.floor_adaln:
-            ctx = torch.cat([self.floor_adaln(f)[:, None], ctx], 1)
-        if cfg.floor_slot_features:  # the raw (x, z, nx, nz) of the subset, packed into rows of width d
-            raw = floor[:, subset].reshape(b, -1)
-            if cfg.room_frame:  # half-extents of the scaled floor, over all its points (centred floors)
-                raw = torch.cat([raw, floor[..., :2].abs().amax(1)], 1)
-            rows = -(-raw.shape[1] // cfg.width)
-            ctx = torch.cat([ctx, F.pad(raw, (0, rows * cfg.width - raw.shape[1])).view(b, rows, cfg.width)], 1)
-        return ctx
+        tokens.append(self.floor_point_proj(per_point) + self.floor_point_global(f)[:, None])
+        ctx = torch.cat([self.floor_adaln(f)[:, None], self.floor_norm(torch.cat(tokens, 1))], 1)
+        # the raw (x, z, nx, nz) of the subset and the half-extents of the scaled floor, over all its points
+        # (centred floors), packed into rows of width d
+        raw = torch.cat([floor[:, subset].reshape(b, -1), floor[..., :2].abs().amax(1)], 1)
+        rows = -(-raw.shape[1] // cfg.width)
+        return torch.cat([ctx, F.pad(raw, (0, rows * cfg.width - raw.shape[1])).view(b, rows, cfg.width)], 1)
 
-    def wall_features(self, x: torch.Tensor, points: torch.Tensor, extents: torch.Tensor | None = None
-                      ) -> torch.Tensor:
-        """(B, N, num_wall_features): each slot's (x, z) relative to the nearest boundary point q1 (offset,
-        q1's inward normal, signed distance along it) and to the nearest point q2 whose normal differs from
-        q1's by more than 60 degrees (another wall; q1 again when there is none). With ``extents`` (B, 2),
-        the scaled floor's half-extents, slots and points are measured in the floor's bounding-box frame
-        (its walls at +-1), and the extents and, for q1 and q2, the gap in metres between the slot's
-        oriented footprint and the wall (signed distance of the centre minus the footprint's half-extent
-        along the normal) are appended."""
+    def wall_features(self, x: torch.Tensor, points: torch.Tensor, extents: torch.Tensor) -> torch.Tensor:
+        """(B, N, WALL_FEATURES): each slot's (x, z) relative to the nearest boundary point q1 (offset, q1's
+        inward normal, signed distance along it) and to the nearest point q2 whose normal differs from q1's by
+        more than 60 degrees (another wall; q1 again when there is none), slots and points measured in the
+        floor's bounding-box frame (its walls at +-1; ``extents`` (B, 2) are the scaled floor's half-extents);
+        then the extents and, for q1 and q2, the gap in metres between the slot's oriented footprint and the
+        wall (signed distance of the centre minus the footprint's half-extent along the normal)."""
         q, n = points[..., :2], points[..., 2:]
-        if extents is None:
-            p = x[..., 0:3:2]  # scaled translation x, z: the scaling of the floor points
-        else:
-            centre, ext, u_x, u_z, half = self._slot_geometry(x, extents)
-            p = centre / ext.clamp_min(1e-2)  # (an all-zero, unconditional floor has no extent)
-            q = q / extents.clamp_min(1e-2)[:, None]
+        centre, ext, u_x, u_z, half = self._slot_geometry(x, extents)
+        p = centre / ext.clamp_min(1e-2)  # (an all-zero, unconditional floor has no extent)
+        q = q / extents.clamp_min(1e-2)[:, None]
         d2 = (p[:, :, None] - q[:, None]).pow(2).sum(-1)  # (B, N, K)
         j1 = d2.argmin(-1)
         n1 = torch.gather(n, 1, j1[..., None].expand(-1, -1, 2))
@@ -369,31 +323,16 @@ class SceneDenoiser(nn.Module):
             nj = torch.gather(n, 1, j[..., None].expand(-1, -1, 2))
             off = p - qj
             feats += [off, nj, (off * nj).sum(-1, keepdim=True)]
-        if extents is not None:  # footprint-to-wall gaps in metres, for the same two walls
-            feats.append(extents[:, None].expand(-1, p.shape[1], -1))
-            q_m = self._metres(points[..., :2], 0)
-            gaps = []
-            for j in (j1, j2):
-                qj = torch.gather(q_m, 1, j[..., None].expand(-1, -1, 2))
-                nj = torch.gather(n, 1, j[..., None].expand(-1, -1, 2))
-                reach = half[..., 0] * (nj * u_x).sum(-1).abs() + half[..., 1] * (nj * u_z).sum(-1).abs()
-                gaps.append(((centre - qj) * nj).sum(-1) - reach)
-            feats.append(torch.stack(gaps, -1).clamp(-2, 2))
+        feats.append(extents[:, None].expand(-1, p.shape[1], -1))
+        q_m = self._metres(points[..., :2], 0)
+        gaps = []  # footprint-to-wall gaps in metres, for the same two walls
+        for j in (j1, j2):
+            qj = torch.gather(q_m, 1, j[..., None].expand(-1, -1, 2))
+            nj = torch.gather(n, 1, j[..., None].expand(-1, -1, 2))
+            reach = half[..., 0] * (nj * u_x).sum(-1).abs() + half[..., 1] * (nj * u_z).sum(-1).abs()
+            gaps.append(((centre - qj) * nj).sum(-1) - reach)
+        feats.append(torch.stack(gaps, -1).clamp(-2, 2))
         return torch.cat(feats, -1)
-
-    def pair_features(self, x: torch.Tensor, extents: torch.Tensor) -> torch.Tensor:
-        """(B, N, N, PAIR_FEATURES) for slot i (row) and slot j (column), in metres from the noisy room-frame
-        slots: j's centre in i's frame (along i's local x and z axes), the gaps between their axis-aligned
-        footprints along x and z (negative: overlapping), and j's yaw relative to i's (cos, sin)."""
-        centre, _, u_x, u_z, half = self._slot_geometry(x, extents)
-        cos, sin = u_x[..., 0], u_z[..., 0]
-        d = centre[:, None, :] - centre[:, :, None]  # [b, i, j] = c_j - c_i
-        local = torch.stack([(d * u_x[:, :, None]).sum(-1), (d * u_z[:, :, None]).sum(-1)], -1)
-        reach = footprint_reach(half, cos, sin)
-        gap = d.abs() - reach[:, :, None] - reach[:, None, :]
-        rel = torch.stack([cos[:, None] * cos[:, :, None] + sin[:, None] * sin[:, :, None],
-                           sin[:, None] * cos[:, :, None] - cos[:, None] * sin[:, :, None]], -1)
-        return torch.cat([local.clamp(-4, 4), gap.clamp(-2, 2), rel], -1)
 
     def _metres(self, v: torch.Tensor, which: int) -> torch.Tensor:
         """Scaled (x, z) features -> metres: ``which`` 0 for translations, 1 for half sizes."""
@@ -430,25 +369,16 @@ class SceneDenoiser(nn.Module):
             if x.shape[1] > MAX_SLOTS:
                 raise ValueError(f"slot_embedding has {MAX_SLOTS} slots; got {x.shape[1]}")
             h = h + self.slot_embed[:x.shape[1]]
-        temb = self.time_embed(timestep_embedding(t, self.config.width))
-        if self.config.floor_adaln:
-            temb = temb + floor_context[:, 0]
-            floor_context = floor_context[:, 1:]
-        if self.config.floor_slot_features:
-            k = self.config.floor_point_tokens
-            rows = -(-self._packed_floor_size() // self.config.width)
-            raw = floor_context[:, -rows:].reshape(b, -1)
-            points = raw[:, :4 * k].view(b, k, 4)
-            extents = raw[:, 4 * k:4 * k + PACKED_EXTENTS] if self.config.room_frame else None
-            floor_context = floor_context[:, :-rows]
-            h = h + self.wall_embed(self.wall_features(x, points, extents))
-        biases = [None] * len(self.blocks)
-        if self.config.pair_bias:  # (B, N, N, L * H) -> L x (B, H, N, N)
-            n, heads = x.shape[1], self.config.num_heads
-            bias = self.pair_embed(self.pair_features(x, extents)).view(b, n, n, len(self.blocks), heads)
-            biases = bias.permute(3, 0, 4, 1, 2).unbind(0)
-        for block, bias in zip(self.blocks, biases):
-            h = block(h, temb, floor_context, bias)
+        temb = self.time_embed(timestep_embedding(t, self.config.width)) + floor_context[:, 0]
+        k = self.config.floor_point_tokens
+        rows = -(-self._packed_floor_size() // self.config.width)
+        raw = floor_context[:, -rows:].reshape(b, -1)
+        points = raw[:, :4 * k].view(b, k, 4)
+        extents = raw[:, 4 * k:4 * k + PACKED_EXTENTS]
+        floor_context = floor_context[:, 1:-rows]
+        h = h + self.wall_embed(self.wall_features(x, points, extents))
+        for block in self.blocks:
+            h = block(h, temb, floor_context)
         shift, scale = self.final_ada(temb).chunk(2, dim=-1)
         return self.out(modulate(self.final_norm(h), shift, scale))
 
@@ -470,15 +400,12 @@ class SceneDenoiser(nn.Module):
             + 2 * n * d * c.ff_dim  # feed-forward
         )
         macs += c.num_layers * per_block + 2 * d * d + n * d * k
-        if c.floor_slot_features:
-            macs += n * (self.num_wall_features * d + d * d)
-        if c.pair_bias:
-            macs += n * n * 64 * (PAIR_FEATURES + c.num_layers * c.num_heads)
+        macs += n * (WALL_FEATURES * d + d * d)  # wall features
         if include_floor:
             w = list(c.pointnet)
             macs += num_points * sum(a * b for a, b in zip(w[:-2], w[1:-1])) + w[-2] * w[-1]
             macs += w[-1] * c.floor_tokens * d + min(c.floor_point_tokens, num_points) * (w[-2] + w[-1]) * d
-            macs += w[-1] * d * int(c.floor_adaln)
+            macs += w[-1] * d  # the floor's adaLN vector
         return 2 * macs
 
 
@@ -505,11 +432,10 @@ class ScenePrior:
         if denoiser.feature_dim != self.spec.feature_dim:
             raise ValueError(f"denoiser has {denoiser.feature_dim} features per slot but {self.spec.name} "
                              f"needs {self.spec.feature_dim}")
-        if denoiser.config.room_frame != (stats.translation_frame == "room"):
-            raise ValueError(
-                f"the denoiser expects translations in the {'room' if denoiser.config.room_frame else 'dataset'} "
-                f"frame but the statistics say {stats.translation_frame!r}: set DatasetStats.translation_frame "
-                "to match DenoiserConfig.room_frame (ScenePrior.create does this)")
+        if stats.translation_frame != "room":
+            raise ValueError(f"the denoiser takes translations in the room frame but the statistics say "
+                             f"{stats.translation_frame!r}: set DatasetStats.translation_frame to 'room' "
+                             "(ScenePrior.create does this)")
         denoiser.set_metric_scale(stats)
         self.schedule = schedule or NoiseSchedule()
         self.meta = dict(meta or {})
@@ -517,10 +443,10 @@ class ScenePrior:
     @classmethod
     def create(cls, room: str | RoomSpec, stats: DatasetStats, preset: str | DenoiserConfig = "small",
                schedule: NoiseSchedule | None = None, **overrides) -> "ScenePrior":
-        """A new (untrained) prior; the statistics take the translation frame of the denoiser's config."""
+        """A new (untrained) prior; the statistics take the room frame (the denoiser's)."""
         spec = get_room(room)
         cfg = preset if isinstance(preset, DenoiserConfig) else DenoiserConfig.from_preset(preset, **overrides)
-        stats = replace(stats, translation_frame="room" if cfg.room_frame else "dataset")
+        stats = replace(stats, translation_frame="room")
         return cls(SceneDenoiser(cfg, spec.feature_dim), stats, schedule)
 
     @property
@@ -624,7 +550,8 @@ class ScenePrior:
             raise ValueError(f"{where} has checkpoint version {state['version']}; this iARCS reads up to "
                              f"{CHECKPOINT_VERSION}: upgrade iARCS")
         known = {f.name for f in fields(DenoiserConfig)}
-        cfg = DenoiserConfig(**{k: v for k, v in state["denoiser_config"].items() if k in known})
+        saved = drop_retired_fields(state["denoiser_config"], where if where == "checkpoint" else f"checkpoint {where}")
+        cfg = DenoiserConfig(**{k: v for k, v in saved.items() if k in known})
         stats = DatasetStats.from_json(state["stats"], state["room_type"])
         net = SceneDenoiser(cfg, int(state["feature_dim"]))
         try:
@@ -677,5 +604,5 @@ def atomic_torch_save(obj, path: str | Path) -> None:
         raise
 
 
-__all__ = ["Attention", "DenoiserConfig", "PRESETS", "PointNetEncoder", "SceneDenoiser", "ScenePrior",
-           "atomic_torch_save", "timestep_embedding"]
+__all__ = ["Attention", "DenoiserConfig", "PRESETS", "PointNetEncoder", "RETIRED_FIELDS", "SceneDenoiser",
+           "ScenePrior", "atomic_torch_save", "drop_retired_fields", "timestep_embedding"]

@@ -67,7 +67,7 @@ class PretrainConfig:
     """Denoiser size preset: small (CPU) or paper (8 layers, width 512)."""
     model: dict = field(default_factory=dict)
     """Overrides of the preset's fields (num_layers, width, num_heads, ff_dim, dropout, pointnet,
-    floor_tokens, floor_point_tokens, floor_adaln, floor_slot_features)."""
+    floor_tokens, floor_point_tokens, slot_embedding)."""
     steps: int = 6000
     """Total optimizer steps of the run (a resumed run continues up to this)."""
     batch_size: int = 128
@@ -460,13 +460,13 @@ def train(cfg: PretrainConfig, layouts: Sequence[Layout] | None = None, max_step
     data, val, stats = training_data(cfg, layouts, log, progress=progress, with_stats=saved is None)
     if saved is not None:
         stats = DatasetStats.from_json(saved["stats"], spec.name)
-        if (stats.translation_frame == "room") != cfg.denoiser_config().room_frame:
+        if stats.translation_frame != "room":
             raise ValueError(
-                f"{state_path} was trained with translations in the {stats.translation_frame!r} frame, but the "
-                f"{cfg.preset!r} preset of this iARCS uses the other one; use another output folder (--out) to "
-                "start a new run, or resume with the iARCS version that wrote it")
+                f"{state_path} was trained with translations in the {stats.translation_frame!r} frame, but this "
+                "iARCS trains in the room frame only; use another output folder (--out) to start a new run, or "
+                "resume with the iARCS version that wrote it")
     else:
-        stats.translation_frame = "room" if cfg.denoiser_config().room_frame else "dataset"
+        stats.translation_frame = "room"
         if init is not None:  # the network's inputs keep the scaling it was trained with
             for name in ("bounds_translations", "bounds_sizes", "bounds_angles", "translation_frame"):
                 setattr(stats, name, copy.deepcopy(getattr(init.stats, name)))

@@ -23,11 +23,8 @@ Variants (:data:`VARIANTS`; combine them with ``+``, e.g. ``slot_identity+min_sn
   slots last) and no permutation augmentation;
 * ``classes_given``: the network is given each slot's clean class at every t (loss on geometry only) and samples
   with the held-out rooms' classes: can it place objects relative to each other when it need not choose them?
-* ``dataset_frame``: translations in metres about the room centre (scaled by the dataset's bounds) instead of
-  the room frame;
 * ``x0``, ``v``: x0 or v prediction instead of epsilon;
-* ``min_snr``: min-SNR-5 timestep weighting (more weight on the mid-noise steps);
-* ``pair_bias``: the pair features (relative geometry of every pair of slots) biasing self-attention.
+* ``min_snr``: min-SNR-5 timestep weighting (more weight on the mid-noise steps).
 
     .venv/bin/python research/relation_learning.py --variant present --minutes 2.5 5 10 20 40 60
     .venv/bin/python research/relation_learning.py --plot out/relation_learning/*.json \\
@@ -67,11 +64,9 @@ VARIANTS: dict[str, dict] = {
     "present": {},
     "slot_identity": {"model": {"slot_embedding": True}, "canonical_order": True, "permutation_augment": False},
     "classes_given": {"classes_given": True},
-    "dataset_frame": {"model": {"room_frame": False}},
     "x0": {"prediction_type": "sample"},
     "v": {"prediction_type": "v_prediction"},
     "min_snr": {"loss_weighting": "min_snr"},
-    "pair_bias": {"model": {"pair_bias": True}},
 }
 
 

@@ -10,7 +10,7 @@ import torch
 from torch import nn
 
 import agents.denoiser as denoiser_module
-from agents.denoiser import (DenoiserConfig, SceneDenoiser, ScenePrior, atomic_torch_save,
+from agents.denoiser import (RETIRED_FIELDS, DenoiserConfig, SceneDenoiser, ScenePrior, atomic_torch_save,
                              timestep_embedding)
 from iarcs_env import FloorPlan, get_room
 from iarcs_env.scene import Layout, SceneBatch
@@ -73,41 +73,32 @@ def test_permutation_equivariance_over_slots():
         assert not torch.allclose(net(x, t, floor.roll(1, dims=1)), eps, atol=1e-5)
 
 
-def test_global_floor_feature_is_a_set_function_without_point_tokens():
-    cfg = DenoiserConfig.from_preset("tiny", floor_point_tokens=0, floor_slot_features=False, pair_bias=False)
-    net = _randomised(SceneDenoiser(cfg, BEDROOM.feature_dim))
-    x, t, floor = torch.randn(2, 12, BEDROOM.feature_dim), torch.tensor([3, 700]), torch.randn(2, 256, 4)
+def test_global_floor_feature_is_a_set_function():
+    net = _randomised(SceneDenoiser(DenoiserConfig.tiny(), BEDROOM.feature_dim))
+    floor, subset = torch.randn(2, 256, 4), torch.arange(8) * 32
     with torch.no_grad():  # max-pooled PointNet feature: any order of the points
-        assert torch.allclose(net(x, t, floor[:, torch.randperm(256)]), net(x, t, floor), atol=1e-5)
+        glob = net.floor_encoder.encode(floor, subset)[0]
+        assert torch.allclose(net.floor_encoder.encode(floor[:, torch.randperm(256)], subset)[0], glob, atol=1e-5)
 
 
-@pytest.mark.parametrize("points, adaln, walls, room", [(0, False, False, False), (0, True, False, True),
-                                                        (8, False, False, False), (8, True, False, True),
-                                                        (8, False, True, False), (8, False, True, True),
-                                                        (8, True, True, True), (300, True, True, True)])
-def test_floor_conditioning_options(points, adaln, walls, room):
-    """Global tokens, per-point tokens, the floor in adaLN and the slots' wall features each work alone and
-    together; the context is [adaLN row] + tokens + [raw boundary points (+ the floor's half-extents in the
-    room frame) packed in rows of width d]."""
-    cfg = DenoiserConfig.from_preset("tiny", floor_point_tokens=points, floor_adaln=adaln,
-                                     floor_slot_features=walls, room_frame=room, pair_bias=walls and room)
+@pytest.mark.parametrize("tokens, points", [(2, 8), (0, 8), (2, 300)])
+def test_floor_conditioning(tokens, points):
+    """The context is the adaLN row + global and per-point tokens + the raw boundary points and the floor's
+    half-extents packed in rows of width d; the floor changes the output, an all-zero floor is unconditional."""
+    cfg = DenoiserConfig.from_preset("tiny", floor_tokens=tokens, floor_point_tokens=points)
     net = _randomised(SceneDenoiser(cfg, BEDROOM.feature_dim))
     floor = torch.randn(2, 256, 4)
     ctx = net.encode_floor(floor)
-    raw_rows = -(-(4 * points + 2 * room) // cfg.width) if walls else 0
-    assert ctx.shape == (2, int(adaln) + cfg.floor_tokens + points + raw_rows, cfg.width)
+    assert ctx.shape == (2, 1 + tokens + points + -(-(4 * points + 2) // cfg.width), cfg.width)
     x, t = torch.randn(2, 12, BEDROOM.feature_dim), torch.tensor([5, 50])
     with torch.no_grad():
         assert torch.allclose(net(x, t), net(x, t, torch.zeros_like(floor)), atol=1e-5)
         assert not torch.allclose(net(x, t), net(x, t, floor))
     assert net.flops_per_scene(12, include_floor=True) > net.flops_per_scene(12)
-    with pytest.raises(ValueError, match="at least one floor token"):
-        DenoiserConfig.from_preset("tiny", floor_tokens=0, floor_point_tokens=0, floor_slot_features=False,
-                                   pair_bias=False)
-    with pytest.raises(ValueError, match="floor_slot_features needs"):
-        DenoiserConfig.from_preset("tiny", floor_point_tokens=0, pair_bias=False)
-    with pytest.raises(ValueError, match="pair_bias needs room_frame"):
-        DenoiserConfig.from_preset("tiny", room_frame=False)
+    with pytest.raises(ValueError, match="floor_point_tokens must be > 0"):
+        DenoiserConfig(floor_point_tokens=0)
+    with pytest.raises(ValueError, match="floor_tokens must be >= 0"):
+        DenoiserConfig(floor_tokens=-1)
 
 
 def test_wall_features_measure_the_nearest_walls():
@@ -120,18 +111,16 @@ def test_wall_features_measure_the_nearest_walls():
              torch.stack([-s, one, 0 * one, -one], -1), torch.stack([-one, -s, one, 0 * one], -1)]
     points = torch.cat(walls)[None]  # (1, 36, 4): x, z, nx, nz
     x = torch.zeros(1, 1, BEDROOM.feature_dim)
-    x[0, 0, 0], x[0, 0, 2] = 0.5, 0.25  # scaled translation x, z
-    f = net.wall_features(x, points)[0, 0]
-    assert torch.allclose(f, torch.tensor([-0.5, 0.0, -1.0, 0.0, 0.5, 0.0, -0.75, 0.0, -1.0, 0.75]), atol=1e-6)
-    x[0, 0, 0] = 1.3  # outside: negative signed distance
-    assert net.wall_features(x, points)[0, 0, 4] == pytest.approx(-0.3, abs=1e-6)
-    # room frame: the same square scaled to half-extents (0.5, 0.25) gives the same features, in room units,
-    # plus the half-extents; through forward's packed context, the extents come from the floor points
+    x[0, 0, 0], x[0, 0, 2] = 0.5, 0.25  # room-frame translation x, z
+    f = net.wall_features(x, points, torch.tensor([[1.0, 1.0]]))[0, 0]
+    assert torch.allclose(f[:12], torch.tensor([-0.5, 0.0, -1.0, 0.0, 0.5, 0.0, -0.75, 0.0, -1.0, 0.75, 1.0, 1.0]),
+                          atol=1e-6)
+    # the same square scaled to half-extents (0.5, 0.25) gives the same features, in room units, plus the
+    # half-extents; through forward's packed context, the extents come from the floor points
     extents = torch.tensor([[0.5, 0.25]])
     small = torch.cat([points[..., :2] * extents, points[..., 2:]], -1)
-    x[0, 0, 0] = 0.5
     f_room = net.wall_features(x, small, extents)[0, 0]
-    assert torch.allclose(f_room[:12], torch.cat([f, extents[0]]), atol=1e-6)
+    assert torch.allclose(f_room[:12], torch.cat([f[:10], extents[0]]), atol=1e-6)
     # footprint-to-wall gaps (features taken as metres until set_metric_scale): a box of half size (0.1, 0.05)
     # at room-frame (0.5, 0.25) has free half-ranges (0.4, 0.2), so its centre is at (0.2, 0.05) m, 0.3 m from
     # the x wall and 0.2 m from the z wall, which its footprint reaches 0.1 and 0.05 m closer; turned by 90
@@ -142,35 +131,6 @@ def test_wall_features_measure_the_nearest_walls():
     assert torch.allclose(net.wall_features(x, small, extents)[0, 0, 12:], torch.tensor([0.225, 0.1125]))
     ctx = net.encode_floor(small)  # forward reads the extents back from the context, after 8 packed points
     assert torch.allclose(ctx[0, -2:].reshape(-1)[4 * 8:4 * 8 + 2], extents[0])
-
-
-def test_pair_features_measure_one_slot_from_another():
-    """Room half-extents (1.0, 0.8) m (features taken as metres until set_metric_scale). Slot 0: half size
-    (0.3, 0.2), yaw 0, at the centre. Slot 1: half size (0.1, 0.1), turned by 90 degrees, centre 0.5 m along
-    +x (room-frame x = 0.5 / 0.9). Seen from slot 0: offset (0.5, 0) in its frame, footprint gaps 0.1 m
-    along x and -0.3 m along z (overlapping in z), relative yaw 90 degrees; seen from slot 1 the offset is
-    (0, -0.5) in its turned frame and the relative yaw -90 degrees."""
-    net = SceneDenoiser(DenoiserConfig.tiny(), BEDROOM.feature_dim)
-    x = torch.zeros(1, 2, BEDROOM.feature_dim)
-    x[0, 0, [3, 5, 6]] = torch.tensor([0.3, 0.2, 1.0])
-    x[0, 1, [0, 3, 5, 7]] = torch.tensor([0.5 / 0.9, 0.1, 0.1, 1.0])
-    f = net.pair_features(x, torch.tensor([[1.0, 0.8]]))[0]
-    assert f.shape == (2, 2, 6)
-    assert torch.allclose(f[0, 1], torch.tensor([0.5, 0.0, 0.1, -0.3, 0.0, 1.0]), atol=1e-6)
-    assert torch.allclose(f[1, 0], torch.tensor([0.0, -0.5, 0.1, -0.3, 0.0, -1.0]), atol=1e-6)
-    # the bias starts at zero (a pair-bias denoiser begins as one without it) and then moves the output
-    cfg = DenoiserConfig.tiny()
-    torch.manual_seed(0)
-    with_bias = _randomised(SceneDenoiser(cfg, BEDROOM.feature_dim))
-    xt, t, floor = torch.randn(2, 12, BEDROOM.feature_dim), torch.tensor([5, 50]), torch.randn(2, 256, 4)
-    with torch.no_grad():
-        before = with_bias(xt, t, floor)
-        with_bias.pair_embed[2].weight.zero_()
-        with_bias.pair_embed[2].bias.zero_()
-        assert not torch.allclose(before, with_bias(xt, t, floor))
-        without = SceneDenoiser(replace(cfg, pair_bias=False), BEDROOM.feature_dim)
-        without.load_state_dict({k: v for k, v in with_bias.state_dict().items() if not k.startswith("pair_embed")})
-        assert torch.allclose(with_bias(xt, t, floor), without(xt, t, floor), atol=1e-6)
 
 
 def test_room_frame_puts_walls_at_plus_minus_one():
@@ -208,7 +168,7 @@ def test_footprint_gap_through_the_feature_pipeline():
 
 
 def test_floor_shape_reaches_every_layer_through_adaln():
-    """With the floor in adaLN, the gates of every block depend on the floor."""
+    """The floor is in adaLN: the gates of every block depend on the floor."""
     net = _randomised(SceneDenoiser(DenoiserConfig.small(), BEDROOM.feature_dim))
     a, b = net.encode_floor(torch.randn(1, 256, 4)), net.encode_floor(torch.randn(1, 256, 4))
     assert not torch.allclose(a[:, 0], b[:, 0])
@@ -259,10 +219,7 @@ def test_presets():
     paper, small = DenoiserConfig.paper(), DenoiserConfig.small()
     assert (paper.num_layers, paper.width, paper.num_heads, paper.ff_dim, paper.dropout) == (8, 512, 4, 2048, 0.1)
     assert paper.pointnet == (4, 64, 64, 512, 64)
-    for cfg in (paper, small):
-        assert cfg.floor_adaln and cfg.floor_point_tokens == 64 and cfg.floor_slot_features
-    old = DenoiserConfig()  # the dataclass defaults are the original design (old checkpoints load)
-    assert not old.floor_adaln and old.floor_point_tokens == 0 and not old.floor_slot_features
+    assert paper == DenoiserConfig() and paper.floor_point_tokens == small.floor_point_tokens == 64
     assert small.width < paper.width
     net = SceneDenoiser(small, BEDROOM.feature_dim)
     assert net.num_parameters() < 4_000_000  # a few MB
@@ -328,23 +285,30 @@ def test_load_rejects_other_files_clearly(tmp_path, monkeypatch):
         ScenePrior.load_default("diningroom")
     # weights that do not fit the config (e.g. from an incompatible iARCS version): a clear error
     state = _tiny_prior().state()
-    state["denoiser_config"]["floor_adaln"] = False
+    state["denoiser_config"]["floor_tokens"] = 3
     atomic_torch_save(state, tmp_path / "mismatch.pt")
     with pytest.raises(ValueError, match="do not fit"):
         ScenePrior.load(tmp_path / "mismatch.pt")
 
 
-def test_checkpoints_without_the_floor_options_load_as_the_original_design(tmp_path):
-    torch.manual_seed(0)
-    prior = ScenePrior.create("bedroom", _stats(), "tiny", floor_point_tokens=0, floor_adaln=False,
-                              floor_slot_features=False, room_frame=False, pair_bias=False)
+@pytest.mark.parametrize("key, value", [("room_frame", False), ("pair_bias", True), ("floor_adaln", False),
+                                        ("floor_slot_features", False), ("floor_point_tokens", 0)])
+def test_switches_of_earlier_designs_load_at_the_shipped_values_only(tmp_path, key, value):
+    """A saved config naming the retired switches at the shipped checkpoints' values loads (they are ignored);
+    another value is an earlier design, refused in one line that names the key; run settings likewise."""
+    prior = _tiny_prior(seed=2)
     state = prior.state()
-    for key in ("floor_point_tokens", "floor_adaln", "floor_slot_features", "room_frame", "pair_bias"):  # written before these
-        del state["denoiser_config"][key]
-    del state["stats"]["translation_frame"]
+    state["denoiser_config"].update(RETIRED_FIELDS)
+    atomic_torch_save(state, tmp_path / "shipped.pt")
+    assert ScenePrior.load(tmp_path / "shipped.pt").denoiser.config == prior.denoiser.config
+    state["denoiser_config"][key] = value
     atomic_torch_save(state, tmp_path / "old.pt")
-    loaded = ScenePrior.load(tmp_path / "old.pt")
-    assert loaded.denoiser.config == prior.denoiser.config
+    with pytest.raises(ValueError, match=rf"old\.pt: made by an earlier design of the denoiser \({key}=") as err:
+        ScenePrior.load(tmp_path / "old.pt")
+    assert "no longer runs" in str(err.value) and "\n" not in str(err.value)
+    assert DenoiserConfig.from_preset("tiny", **RETIRED_FIELDS) == DenoiserConfig.tiny()
+    with pytest.raises(ValueError, match=f"earlier design of the denoiser \\({key}="):
+        DenoiserConfig.from_preset("small", **{key: value})
 
 
 @pytest.mark.parametrize("room, anchor", [("bedroom", "bed"), ("livingroom", "sofa"), ("diningroom", "dining_table")])
