@@ -13,7 +13,7 @@
 #   bench.json     the benchmark's rows                     tests.log  the tests' output
 #   report.md      machine, steps, training, evaluation, the exact commands
 #
-# Settings (environment): CONFIG (default experiments/pretrain_bedroom_gpu_slots.yaml), CONTINUE_FROM (a prior or
+# Settings (environment): CONFIG (default experiments/pretrain_bedroom_gpu_run.yaml), CONTINUE_FROM (a prior or
 # run folder for `--continue-from`; the config's init_from otherwise), EVAL_FLOORS (500), DEVICE (auto: cuda when
 # torch sees a GPU), PYTHON (python3), WHEELS (.whl: wheels installed where a package is missing), TESTS
 # (tests/test_device.py), TESTS_TIMEOUT and BENCH_TIMEOUT (seconds), BENCH_ARGS (the benchmark's options besides
@@ -41,7 +41,7 @@ mkdir -p "$1" || exit 2
 OUT=$(cd "$1" && pwd)
 cd "$REPO" || exit 2
 PY=${PYTHON:-python3}
-CONFIG=${CONFIG:-experiments/pretrain_bedroom_gpu_slots.yaml}
+CONFIG=${CONFIG:-experiments/pretrain_bedroom_gpu_run.yaml}
 EVAL_FLOORS=${EVAL_FLOORS:-500}
 WHEELS=${WHEELS:-.whl}
 TESTS=${TESTS:-tests/test_device.py}
