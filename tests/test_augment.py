@@ -9,6 +9,7 @@ import torch
 import yaml
 
 import experiments.commands.augment as augment
+from agents.config import read_yaml_settings
 from agents.pretrain_data import SceneTensors
 from experiments.cli import main
 from iarcs_env.datasets import load_layouts
@@ -35,7 +36,7 @@ def test_a_mix_draws_each_dataset_its_weights_share_and_rooms_alike_within_it():
 @pytest.fixture
 def tiny_recipe(tmp_path, monkeypatch):
     """The bedroom recipe made small: 40 procedural training rooms, batches of 8."""
-    recipe = yaml.safe_load(augment.RECIPES["bedroom"].read_text())
+    recipe = read_yaml_settings(augment.RECIPES["bedroom"])
     recipe.update(num_scenes=40, val_scenes=4, batch_size=8, log_every=1, eval_every=2, checkpoint_every=2,
                   precision="fp32")
     path = tmp_path / "recipe.yaml"

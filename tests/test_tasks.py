@@ -207,7 +207,7 @@ def test_cli_sample_satisfying_writes_only_passing_scenes(tmp_path, capsys):
 
     out = tmp_path / "s.json"
     args = ["sample", "--room", "bedroom", "--num-scenes", "4", "--seed", "0", "--out", str(out)]
-    assert main(args + ["--satisfying", "reach_1m", "--max-draws", "40"]) == 0
+    assert main(args + ["--satisfying", "reach_1m", "--max-draws", "100"]) == 0
     data = json.loads(out.read_text())
     info = data["meta"]["satisfying"]
     assert info["task"] == "reach_1m" and info["floors"] == 4 and info["kept"] == len(data["scenes"]) == 4
