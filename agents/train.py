@@ -325,6 +325,24 @@ def stage1_adapter_path(room: str = "bedroom") -> Path:
     return Path(__file__).parent / "checkpoints" / f"{get_room(room).name}_small_stage1" / "stage1"
 
 
+def shipped_adapter_path(room: str, name: str) -> Path:
+    """A LoRA adapter shipped with the small prior of ``room`` (peft format): ``stage1``, or a paper task's
+    stage-2 adapter by the task's name (``agents/checkpoints/<room>_small_tasks/<task>``)."""
+    from iarcs_env.rooms import get_room
+
+    if name == "stage1":
+        return stage1_adapter_path(room)
+    return Path(__file__).parent / "checkpoints" / f"{get_room(room).name}_small_tasks" / name
+
+
+def shipped_adapters(room: str) -> list[str]:
+    """The names of the adapters shipped for ``room``: ``stage1`` first, then the task adapters."""
+    from iarcs_env.tasks import TASKS
+
+    return [name for name in ["stage1", *TASKS]
+            if (shipped_adapter_path(room, name) / "adapter_config.json").exists()]
+
+
 def load_stage1_policy(room: str = "bedroom", num_steps: int = 20):
     """The shipped prior with its shipped stage-1 adapter active (stage 2 starts from it)."""
     from .denoiser import ScenePrior

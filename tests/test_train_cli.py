@@ -195,3 +195,21 @@ def test_sample_with_a_placement_adapter_keeps_the_priors_features(tmp_path):
 
     assert labels == sampled_labels(eps_fn=policy.eps)
     assert labels != sampled_labels()  # the LoRA model on every feature would pick other objects
+
+
+def test_sample_adapter_names_a_shipped_adapter(tmp_path, capsys):
+    """``--adapter stage1`` samples the shipped stage-1 adapter (the same scenes as its folder passed as
+    --checkpoint); an adapter that is not shipped is refused with the list of those that are."""
+    from agents.train import stage1_adapter_path
+
+    by_name, by_path = tmp_path / "by_name.json", tmp_path / "by_path.json"
+    common = ["sample", "--num-scenes", "4", "--steps", "4", "--seed", "3"]
+    assert main([*common, "--adapter", "stage1", "--out", str(by_name)]) == 0
+    assert main([*common, "--checkpoint", str(stage1_adapter_path("bedroom")), "--out", str(by_path)]) == 0
+    scenes = [json.loads(p.read_text())["scenes"] for p in (by_name, by_path)]
+    assert [s["objects"] for s in scenes[0]] == [s["objects"] for s in scenes[1]]
+    capsys.readouterr()
+    assert main([*common, "--adapter", "no_such_task", "--out", str(by_name)]) == 2
+    err = capsys.readouterr().err
+    assert "--adapter no_such_task" in err and "shipped: stage1" in err
+    assert main([*common, "--adapter", "stage1", "--checkpoint", "x", "--out", str(by_name)]) == 2

@@ -42,6 +42,9 @@ def register(sub) -> None:
                    help="prior.pt of a pretraining run, an `iarcs train` run folder (its prior + LoRA "
                         "adapter), or a LoRA adapter folder (peft format) for the shipped prior; default: the "
                         "prior shipped for --room")
+    p.add_argument("--adapter", default=None, metavar="NAME",
+                   help="sample the shipped prior through one of its shipped LoRA adapters: stage1, or a paper "
+                        "task's stage-2 adapter (its name, e.g. two_nightstands)")
     p.add_argument("--floors", default=None,
                    help="layout file whose floor plans to use, room for room (default: procedural floors)")
     p.add_argument("--steps", type=int, default=20, help="DDIM steps (default 20)")
@@ -122,6 +125,19 @@ def load_sampler(checkpoint: str | None, room: str):
     return prior, policy
 
 
+def shipped_adapter(room: str, name: str) -> Path:
+    """The folder of the shipped adapter ``name`` of ``room``'s prior, or a CLIError that lists the shipped ones."""
+    from agents.train import shipped_adapter_path, shipped_adapters
+    from experiments.cli import CLIError
+
+    shipped = shipped_adapters(room)
+    if name not in shipped:
+        have = ", ".join(shipped) or "none"
+        raise CLIError(f"--adapter {name}: no such adapter is shipped for {room} (shipped: {have}); to sample "
+                       "an adapter you trained, pass its `iarcs train` run folder as --checkpoint")
+    return shipped_adapter_path(room, name)
+
+
 def cmd_sample(args) -> int:
     import numpy as np
     import torch
@@ -157,8 +173,13 @@ def cmd_sample(args) -> int:
         if task.room != spec.name:
             raise CLIError(f"--satisfying {task.name} is a {task.room} task but --room is {spec.name}")
     device = resolve_device(args.device or "auto")
+    checkpoint = args.checkpoint
+    if args.adapter:
+        if checkpoint:
+            raise CLIError("pass --adapter (a shipped adapter of the shipped prior) or --checkpoint, not both")
+        checkpoint = str(shipped_adapter(spec.name, args.adapter))
 
-    prior, policy = load_sampler(args.checkpoint, spec.name)
+    prior, policy = load_sampler(checkpoint, spec.name)
     prior.to(device)
 
     if args.floors:
@@ -186,7 +207,7 @@ def cmd_sample(args) -> int:
                             guidance_scale=args.guidance, batch_size=args.batch_size, ids=[ids[i] for i in indices],
                             eps_fn=policy.eps if policy else None).to_layouts()
 
-    meta = {"source": "iarcs sample", "room_type": spec.name, "checkpoint": str(args.checkpoint or
+    meta = {"source": "iarcs sample", "room_type": spec.name, "checkpoint": str(checkpoint or
             ScenePrior.default_path(spec.name).name), "seed": args.seed, "ddim_steps": args.steps,
             "eta": args.eta, "guidance": args.guidance, "floors": args.floors or "procedural"}
     if task is None:
