@@ -325,14 +325,18 @@ def stage1_adapter_path(room: str = "bedroom") -> Path:
     return Path(__file__).parent / "checkpoints" / f"{get_room(room).name}_small_stage1" / "stage1"
 
 
-def shipped_adapter_path(room: str, name: str) -> Path:
-    """A LoRA adapter shipped with the small prior of ``room`` (peft format): ``stage1``, or a paper task's
-    stage-2 adapter by the task's name (``agents/checkpoints/<room>_small_tasks/<task>``)."""
+def shipped_task_dir(room: str, task: str) -> Path:
+    """A paper task's shipped stage-2 adapter, as an ``iarcs generate`` library entry: ``adapter/`` (peft),
+    ``reward/`` (the program it was trained with) and ``constraint.txt``."""
     from iarcs_env.rooms import get_room
 
-    if name == "stage1":
-        return stage1_adapter_path(room)
-    return Path(__file__).parent / "checkpoints" / f"{get_room(room).name}_small_tasks" / name
+    return Path(__file__).parent / "checkpoints" / f"{get_room(room).name}_small_tasks" / task
+
+
+def shipped_adapter_path(room: str, name: str) -> Path:
+    """A LoRA adapter shipped with the small prior of ``room`` (peft format): ``stage1``, or a paper task's
+    stage-2 adapter by the task's name."""
+    return stage1_adapter_path(room) if name == "stage1" else shipped_task_dir(room, name) / "adapter"
 
 
 def shipped_adapters(room: str) -> list[str]:

@@ -153,7 +153,12 @@ def test_training_refuses_a_partial_program_unless_told(tmp_path):
 
 
 def test_generate_trains_once_then_reuses_the_adapter(tmp_path, monkeypatch, capsys):
+    import shutil
+
+    import agents.train
+
     monkeypatch.setenv("IARCS_HOME", str(tmp_path / "home"))
+    monkeypatch.setattr(agents.train, "shipped_task_dir", lambda room, task: tmp_path / "shipped" / task)
     args = ["generate", "--room", "bedroom", "--constraint", PROMPT, "--num-scenes", "4", "--epochs", "1"]
     assert main(args + ["--out", str(tmp_path / "a")]) == 0
     out = tmp_path / "a"
@@ -177,6 +182,14 @@ def test_generate_trains_once_then_reuses_the_adapter(tmp_path, monkeypatch, cap
     assert main(args + ["--out", str(tmp_path / "d"), "--only-satisfying", "--max-draws", "1"]) == 2
     assert "no scene passed two_nightstands in 1 draws" in capsys.readouterr().err
     assert not (tmp_path / "d" / "scenes.json").exists()
+    # a shipped adapter for the paper task's prompt is used at once, with an empty library
+    from experiments.commands.generate import library_dir
+
+    shutil.copytree(library_dir("bedroom", PROMPT), tmp_path / "shipped" / "two_nightstands")
+    monkeypatch.setenv("IARCS_HOME", str(tmp_path / "empty_home"))
+    assert main(args + ["--out", str(tmp_path / "e")]) == 0
+    assert "using the adapter shipped for this paper task" in capsys.readouterr().out
+    assert not (tmp_path / "e" / "train").exists() and (tmp_path / "e" / "scenes.json").exists()
 
 
 def test_the_demo_runs_end_to_end_on_a_tiny_budget(tmp_path):

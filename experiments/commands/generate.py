@@ -38,7 +38,7 @@ def register(sub) -> None:
                    help="task checker to report success with (reach_1m, tv_from_bed, study_zone, two_nightstands, "
                         "wheelchair); default: the paper task whose prompt equals the constraint, if any")
     p.add_argument("--epochs", type=int, default=100, help="stage-2 training epochs when no adapter exists (default 100)")
-    p.add_argument("--retrain", action="store_true", help="train a new adapter even if the library has one")
+    p.add_argument("--retrain", action="store_true", help="train a new adapter even if one is shipped for this paper task or the library has one")
     p.add_argument("--only-satisfying", action="store_true",
                    help="write only scenes that pass the task's checker (needs a paper task: --task or its prompt as "
                         "the constraint): each floor plan is sampled again until one passes, at most --max-draws "
@@ -107,7 +107,7 @@ def cmd_generate(args) -> int:
     from agents.config import resolve_device
     from agents.denoiser import ScenePrior
     from agents.policy import DiffusionPolicy
-    from agents.train import ADAPTERS_DIR, stage1_adapter_path
+    from agents.train import ADAPTERS_DIR, shipped_task_dir, stage1_adapter_path
     from experiments.cli import CLIError
     from iarcs_env.datasets import save_layouts
     from iarcs_env.datasets.atiss import write_atiss_folder
@@ -133,7 +133,11 @@ def cmd_generate(args) -> int:
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     lib = library_dir(room, args.constraint)
-    if (lib / "adapter" / "adapter_config.json").exists() and not args.retrain:
+    shipped = shipped_task_dir(room, task) if task and task == matching_task(args.constraint) else None
+    if shipped and (shipped / "adapter" / "adapter_config.json").exists() and not args.retrain:
+        lib = shipped
+        print(f"1/3 using the adapter shipped for this paper task ({task}): {lib}")
+    elif (lib / "adapter" / "adapter_config.json").exists() and not args.retrain:
         print(f"1/3 reusing the adapter trained for this constraint: {lib}")
     else:
         print(f"1/3 training a stage-2 adapter for {args.constraint!r} ({args.epochs} epochs) ...")
