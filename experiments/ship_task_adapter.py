@@ -1,0 +1,45 @@
+"""Ship a paper task's stage-2 adapter from an ``iarcs train`` run: its exported LoRA weights in float16 (half the
+size; the samples keep their classes and move by under 4 mm), the reward program it was trained with and the task's
+prompt, laid out as an ``iarcs generate`` library entry in ``agents/checkpoints/<room>_small_tasks/<task>/``.
+
+    .venv/bin/python experiments/ship_task_adapter.py out/train/t41_two_nightstands
+"""
+
+from __future__ import annotations
+
+import argparse
+import shutil
+import sys
+from pathlib import Path
+
+
+def ship(run_dir: Path) -> Path:
+    from safetensors.torch import load_file, save_file
+
+    from agents.train import ADAPTERS_DIR, load_train_config, shipped_task_dir
+    from iarcs_env.tasks import get_task
+
+    cfg = load_train_config(run_dir / "config.yaml")
+    task = get_task(cfg.task["checker"])
+    source = run_dir / ADAPTERS_DIR / cfg.adapter
+    if not (source / "adapter_config.json").exists():
+        sys.exit(f"{run_dir} has no exported adapter {cfg.adapter!r} (let the run finish first)")
+    dest = shipped_task_dir(cfg.room, task.name)
+    shutil.rmtree(dest, ignore_errors=True)
+    shutil.copytree(source, dest / "adapter")
+    weights = dest / "adapter" / "adapter_model.safetensors"
+    save_file({k: v.half() for k, v in load_file(weights).items()}, weights)
+    shutil.copytree(run_dir / "reward", dest / "reward")
+    (dest / "constraint.txt").write_text(task.prompt + "\n")
+    return dest
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("run", type=Path, help="an `iarcs train` run folder of a paper task's config")
+    dest = ship(parser.parse_args().run)
+    print(f"shipped to {dest}")
+
+
+if __name__ == "__main__":
+    main()
