@@ -27,8 +27,8 @@ def ship(run_dir: Path) -> Path:
     dest = shipped_task_dir(cfg.room, task.name)
     shutil.rmtree(dest, ignore_errors=True)
     shutil.copytree(source, dest / "adapter")
-    weights = dest / "adapter" / "adapter_model.safetensors"
-    save_file({k: v.half() for k, v in load_file(weights).items()}, weights)
+    for weights in (dest / "adapter").rglob("*.safetensors"):  # with the reference adapter it builds on, if any
+        save_file({k: v.half() for k, v in load_file(weights).items()}, weights)
     shutil.copytree(run_dir / "reward", dest / "reward")
     (dest / "constraint.txt").write_text(task.prompt + "\n")
     return dest
