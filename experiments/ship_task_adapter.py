@@ -29,6 +29,8 @@ def ship(run_dir: Path) -> Path:
     shutil.copytree(source, dest / "adapter")
     for weights in (dest / "adapter").rglob("*.safetensors"):  # with the reference adapter it builds on, if any
         save_file({k: v.half() for k, v in load_file(weights).items()}, weights)
+    for card in (dest / "adapter").rglob("README.md"):  # peft's blank model-card template
+        card.unlink()
     shutil.copytree(run_dir / "reward", dest / "reward")
     (dest / "constraint.txt").write_text(task.prompt + "\n")
     return dest
