@@ -1,6 +1,7 @@
 """Ship a paper task's stage-2 adapter from an ``iarcs train`` run: its exported LoRA weights in float16 (half the
 size; the samples keep their classes and move by under 4 mm), the reward program it was trained with and the task's
-prompt, laid out as an ``iarcs generate`` library entry in ``agents/checkpoints/<room>_small_tasks/<task>/``.
+prompt, laid out as an ``iarcs generate`` library entry in ``agents/checkpoints/<room>_small_tasks/<task>/``, with
+``training.json``: the run's epochs and training time (what ``experiments/cost_table.py`` charges an adapter).
 
     .venv/bin/python experiments/ship_task_adapter.py out/train/t41_two_nightstands
 """
@@ -8,9 +9,20 @@ prompt, laid out as an ``iarcs generate`` library entry in ``agents/checkpoints/
 from __future__ import annotations
 
 import argparse
+import json
 import shutil
 import sys
 from pathlib import Path
+
+
+def train_seconds(run_dir: Path) -> float:
+    """A run's training time: the span of its TensorBoard events (evaluations included; resumed runs count
+    their pauses too, so ship from a run made in one go)."""
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    events = EventAccumulator(str(run_dir / "tb")).Reload()
+    last = max(e.wall_time for tag in events.Tags()["scalars"] for e in events.Scalars(tag))
+    return last - events.FirstEventTimestamp()
 
 
 def ship(run_dir: Path) -> Path:
@@ -33,6 +45,8 @@ def ship(run_dir: Path) -> Path:
         card.unlink()
     shutil.copytree(run_dir / "reward", dest / "reward")
     (dest / "constraint.txt").write_text(task.prompt + "\n")
+    training = {"run": str(run_dir), "epochs": cfg.epochs, "train_seconds": round(train_seconds(run_dir), 1)}
+    (dest / "training.json").write_text(json.dumps(training, indent=1) + "\n")
     return dest
 
 

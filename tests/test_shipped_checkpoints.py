@@ -17,12 +17,16 @@ import pytest
 import torch
 
 from agents.denoiser import ScenePrior
-from agents.train import load_stage1_policy, stage1_adapter_path
+from agents.policy import DiffusionPolicy
+from agents.train import load_stage1_policy, shipped_adapter_path, shipped_adapters, shipped_task_dir, stage1_adapter_path
 from iarcs_env.datasets.procedural import generate_layouts
+from iarcs_env.tasks import get_task
 
 FIXTURE = Path(__file__).parent / "fixtures" / "shipped_samples.json"
 UPDATE = os.environ.get("IARCS_UPDATE_SHIPPED_SAMPLES") == "1"
-CHECKPOINTS = [("bedroom", None), ("livingroom", None), ("diningroom", None), ("bedroom", "stage1")]
+TASK_ADAPTERS = [name for name in shipped_adapters("bedroom") if name != "stage1"]
+CHECKPOINTS = [("bedroom", None), ("livingroom", None), ("diningroom", None), ("bedroom", "stage1"),
+               *(("bedroom", name) for name in TASK_ADAPTERS)]
 
 
 def sample(room: str, adapter: str | None) -> dict:
@@ -30,8 +34,12 @@ def sample(room: str, adapter: str | None) -> dict:
     generator = torch.Generator().manual_seed(0)
     if adapter is None:
         batch = ScenePrior.load_default(room).sample(floors, generator=generator)
-    else:
+    elif adapter == "stage1":
         batch = load_stage1_policy(room).sample(floors, generator=generator)
+    else:  # a task adapter, loaded as `iarcs sample --adapter TASK` loads it
+        policy = DiffusionPolicy(ScenePrior.load_default(room), adapter="scratch")
+        policy.load_adapter(shipped_adapter_path(room, adapter), "sampled")
+        batch = policy.prior.sample(floors, generator=generator, eps_fn=policy.eps)
     return {"labels": [lay.labels for lay in batch.to_layouts()],
             "geometry": [np.concatenate([lay.translations, lay.half_sizes, lay.yaws[:, None]], 1).round(6).tolist()
                          for lay in batch.to_layouts()]}
@@ -57,3 +65,12 @@ def test_a_shipped_checkpoint_samples_what_it_sampled_when_shipped(reference, ro
     assert got["labels"] == want["labels"]
     for g, w in zip(got["geometry"], want["geometry"]):
         assert np.allclose(g, w, atol=1e-4), key
+
+
+@pytest.mark.parametrize("task", TASK_ADAPTERS)
+def test_a_shipped_task_adapter_carries_its_prompt_reward_and_training_time(task):
+    folder = shipped_task_dir("bedroom", task)
+    assert (folder / "constraint.txt").read_text().strip() == get_task(task).prompt
+    assert list((folder / "reward").glob("*.py")), "the reward program it was trained with"
+    training = json.loads((folder / "training.json").read_text())
+    assert training["epochs"] > 0 and training["train_seconds"] > 60
