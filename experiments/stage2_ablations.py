@@ -1,0 +1,130 @@
+"""The paper's two stage-2 ablations (issue 38, item 2), as task success against epochs with two training seeds:
+(a) with and without reward reflection, on reach_1m and two_nightstands; (b) two-stage (the task adapter starts
+from the stage-1 adapter) against single-stage (universal and task rewards together, from the prior), on reach_1m.
+
+    .venv/bin/python experiments/stage2_ablations.py run experiments/ablations/task_reach_1m_no_reflection.yaml --seed 0
+        [--epochs 100]   (each arm: experiments/task_<task>.yaml or experiments/ablations/task_<task>_*.yaml)
+    .venv/bin/python experiments/stage2_ablations.py plot [--epochs 100]
+
+``run`` trains CONFIG with the seed in ``out/ablation/<config>_s<seed>`` (resuming one that stopped). ``plot``
+draws every run there into docs/figures/ablation_reflection.png and docs/figures/ablation_stages.png (each seed
+thin, their mean thick; success on the run's 64 evaluation floors) and prints the final and best successes.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+RUNS = ROOT / "out" / "ablation"
+FIGURES = ROOT / "docs" / "figures"
+# figure -> (tasks, {arm label: config name pattern})
+ABLATIONS = {
+    "ablation_reflection": (["reach_1m", "two_nightstands"],
+                            {"with reflection": "task_{task}", "without reflection": "task_{task}_no_reflection"}),
+    "ablation_stages": (["reach_1m"], {"two-stage": "task_{task}", "single-stage": "task_{task}_single_stage"}),
+}
+
+
+def run(config: Path, seed: int, epochs: int) -> Path:
+    """Train ``config`` with ``seed`` for ``epochs`` into ``out/ablation/<config>_s<seed>``."""
+    out = RUNS / f"{config.stem}_s{seed}"
+    out.mkdir(parents=True, exist_ok=True)
+    override = out.with_suffix(".yaml")
+    override.write_text(f"base: {os.path.relpath(config.resolve(), override.parent)}\nseed: {seed}\n")
+    iarcs = Path(sys.executable).parent / "iarcs"
+    subprocess.run([str(iarcs), "train", "--config", str(override), "--epochs", str(epochs), "--out", str(out)],
+                   cwd=ROOT, check=True)
+    return out
+
+
+def success_curve(run_dir: Path, task: str, epochs: int) -> tuple[list[int], list[float]]:
+    """(epochs, task success on the evaluation floors) of a run, up to ``epochs``."""
+    from agents.config import read_jsonl
+
+    rows = [r for r in read_jsonl(run_dir / "eval.jsonl") if r["epoch"] <= epochs]
+    return [r["epoch"] for r in rows], [r[f"task_success_{task}"] for r in rows]
+
+
+COLOURS = {0: (31, 119, 180), 1: (255, 127, 14)}
+W, H, LEFT, TOP, BOTTOM = 460, 320, 52, 30, 40
+
+
+def draw_panel(draw, font, ox: int, title: str, epochs: int, arms: dict[str, list[tuple[list, list]]]) -> None:
+    """One panel at x offset ``ox``: each arm's seeds thin, their mean thick, success 0-1 against epochs."""
+    import numpy as np
+
+    pw, ph = W - LEFT - 15, H - TOP - BOTTOM
+    to_xy = lambda x, y: (ox + LEFT + x / epochs * pw, TOP + ph - y * ph)  # noqa: E731
+    draw.text((ox + LEFT, 8), title, fill="black", font=font)
+    draw.rectangle([ox + LEFT, TOP, ox + LEFT + pw, TOP + ph], outline="black")
+    for k in range(6):  # success ticks 0, 0.2, ... 1
+        _, py = to_xy(0, k / 5)
+        draw.line([ox + LEFT - 4, py, ox + LEFT + pw, py], fill=(225, 225, 225))
+        draw.text((ox + 8, py - 7), f"{k * 20}%", fill="black", font=font)
+    for k in range(0, epochs + 1, max(10, epochs // 5)):
+        px, _ = to_xy(k, 0)
+        draw.line([px, TOP + ph, px, TOP + ph + 4], fill="black")
+        draw.text((px - 8, TOP + ph + 6), str(k), fill="black", font=font)
+    draw.text((ox + LEFT + pw // 2 - 20, H - 16), "epoch", fill="black", font=font)
+    for a, (label, curves) in enumerate(arms.items()):
+        colour = COLOURS[a]
+        pale = tuple(int(c + (255 - c) * 0.6) for c in colour)
+        for x, y in curves:
+            draw.line([to_xy(*p) for p in zip(x, y)], fill=pale, width=1)
+        if curves:
+            n = min(len(x) for x, _ in curves)
+            mean = np.mean([y[:n] for _, y in curves], 0)
+            draw.line([to_xy(*p) for p in zip(curves[0][0][:n], mean)], fill=colour, width=3)
+        ly = TOP + 8 + 18 * a
+        draw.line([ox + LEFT + 10, ly + 7, ox + LEFT + 35, ly + 7], fill=colour, width=3)
+        draw.text((ox + LEFT + 42, ly), f"{label} ({len(curves)} seed{'' if len(curves) == 1 else 's'})", fill="black", font=font)
+
+
+def plot(epochs: int) -> None:
+    """Draw each ablation's figure (Pillow) and print every run's final and best success."""
+    from PIL import Image, ImageDraw, ImageFont
+
+    try:
+        font = ImageFont.load_default(size=13)
+    except TypeError:  # an old Pillow: the bitmap font
+        font = ImageFont.load_default()
+    for figure, (tasks, arms) in ABLATIONS.items():
+        image = Image.new("RGB", (W * len(tasks), H), "white")
+        draw = ImageDraw.Draw(image)
+        for i, task in enumerate(tasks):
+            curves = {}
+            for label, pattern in arms.items():
+                runs = sorted(RUNS.glob(pattern.format(task=task) + "_s[0-9]*/eval.jsonl"))
+                curves[label] = [success_curve(r.parent, task, epochs) for r in runs]
+                for r, (x, y) in zip(runs, curves[label]):
+                    print(f"{figure} {task} {label} {r.parent.name}: {y[-1]:.1%} at epoch {x[-1]}, "
+                          f"best {max(y):.1%}")
+            draw_panel(draw, font, i * W, f"{task}: task success, 64 evaluation floors", epochs, curves)
+        FIGURES.mkdir(parents=True, exist_ok=True)
+        image.save(FIGURES / f"{figure}.png")
+        print(f"-> {FIGURES / f'{figure}.png'}")
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    sub = parser.add_subparsers(dest="command", required=True)
+    p = sub.add_parser("run", help="train one arm with one seed")
+    p.add_argument("config", type=Path, help="the arm's config (experiments/task_*.yaml or experiments/ablations/task_*.yaml)")
+    p.add_argument("--seed", type=int, required=True)
+    p.add_argument("--epochs", type=int, default=100, help="epochs (default 100)")
+    p = sub.add_parser("plot", help="draw the two figures from the runs in out/ablation")
+    p.add_argument("--epochs", type=int, default=100, help="plot up to this epoch (default 100)")
+    args = parser.parse_args()
+    if args.command == "run":
+        run(args.config, args.seed, args.epochs)
+    else:
+        plot(args.epochs)
+
+
+if __name__ == "__main__":
+    main()
