@@ -20,6 +20,9 @@ def tiny_run_config(tmp_path):
 
 
 def test_train_writes_a_complete_run_folder_and_resumes(tiny_run_config, tmp_path, capsys):
+    from experiments.ship_task_adapter import train_seconds
+
+    started = time.time()
     assert main(["train", "--config", str(tiny_run_config)]) == 0
     run = tmp_path / "run"
     assert (run / "adapters" / "stage1" / "adapter_config.json").exists()
@@ -43,6 +46,8 @@ def test_train_writes_a_complete_run_folder_and_resumes(tiny_run_config, tmp_pat
     assert main(["train", "--config", str(tiny_run_config), "--epochs", "3"]) == 0
     assert f"the best evaluation's: reward {top['reward']:.4g} at epoch {top['epoch']}" in capsys.readouterr().out
     assert weights(run / "adapters" / "stage1") == weights(run / "best" / "stage1")
+    # the training time a shipped adapter records: its TensorBoard events' span, within the wall time of the runs
+    assert 0 < train_seconds(run) <= time.time() - started
 
     out = tmp_path / "samples.json"
     assert main(["sample", "--checkpoint", str(run), "--num-scenes", "3", "--steps", "4", "--out", str(out)]) == 0
