@@ -4,20 +4,18 @@ adapter and then sampling from it (training included), and how diverse the passi
 of their renders against the data rooms that pass the same checker; 50% = indistinguishable).
 
     .venv/bin/python experiments/cost_table.py --work out/cost [--scenes 1000 4000] [--tasks reach_1m ...]
-        [--run two_nightstands=out/train/t41_two_nightstands]
 
 Floors and data rooms: ``iarcs data generate --room bedroom --num-scenes MAX --seed 777``; N scenes use its first
 N floors. Both ways sample those floors with ``--satisfying`` (``--max-draws``, seed 0), timed as the commands
-run (model loading included) with every core. An adapter's training time is its run's TensorBoard span (the
-shipped adapter's ``training.json``, or ``--run TASK=RUN`` for a run not shipped). Writes WORK/cost.json and
-WORK/cost.md.
+run (model loading included), on the threads OMP_NUM_THREADS allows. An adapter's training time is its run's
+TensorBoard span (the shipped adapter's ``training.json``); a task without a shipped adapter has rejection rows
+only. Writes WORK/cost.json and WORK/cost.md, keeping the rows of earlier calls it did not measure again.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
-import os
 import subprocess
 import sys
 import time
@@ -76,7 +74,6 @@ def markdown(rows: list[dict]) -> str:
 
 def main() -> None:
     from agents.train import shipped_adapters, shipped_task_dir
-    from experiments.ship_task_adapter import train_seconds
     from iarcs_env.datasets import load_layouts
     from iarcs_env.tasks import TASKS, task_results
 
@@ -85,12 +82,8 @@ def main() -> None:
     parser.add_argument("--scenes", type=int, nargs="+", default=[1000, 4000], help="scenes asked (default 1000 4000)")
     parser.add_argument("--tasks", nargs="+", default=[t for t in TASKS if TASKS[t].room == "bedroom"],
                         help="paper tasks (default: every bedroom task)")
-    parser.add_argument("--run", action="append", default=[], metavar="TASK=RUN",
-                        help="an `iarcs train` run of a task whose adapter is not shipped (repeatable)")
     parser.add_argument("--max-draws", type=int, default=50, help="draws per floor plan (default 50)")
     args = parser.parse_args()
-    runs = dict(spec.split("=", 1) for spec in args.run)
-    os.environ.setdefault("OMP_NUM_THREADS", str(os.cpu_count()))
 
     args.work.mkdir(parents=True, exist_ok=True)
     floors = args.work / "floors.json"
@@ -98,6 +91,8 @@ def main() -> None:
         run_timed(["data", "generate", "--room", "bedroom", "--num-scenes", str(max(args.scenes)), "--seed", "777",
                    "--out", str(floors)])
     data = load_layouts(floors, "bedroom")
+    if len(data) < max(args.scenes):
+        sys.exit(f"{floors} holds {len(data)} rooms, fewer than --scenes asks; delete it to generate {max(args.scenes)}")
     rows = []
     for task in args.tasks:
         reference = [r for r, ok in zip(data, task_results(task, data)) if ok]
@@ -105,14 +100,17 @@ def main() -> None:
         if task in shipped_adapters("bedroom"):
             adapter = ["--adapter", task]
             seconds = json.loads((shipped_task_dir("bedroom", task) / "training.json").read_text())["train_seconds"]
-        elif task in runs:
-            adapter, seconds = ["--checkpoint", runs[task]], train_seconds(Path(runs[task]))
         for n in args.scenes:
             rows.append(measure(task, n, floors, reference, args.work, args.max_draws, None, None))
             if adapter:
                 rows.append(measure(task, n, floors, reference, args.work, args.max_draws, adapter, seconds))
             print(markdown(rows[-2:] if adapter else rows[-1:]), flush=True)
-    (args.work / "cost.json").write_text(json.dumps(rows, indent=1))
+    table = args.work / "cost.json"  # rows of earlier calls stay, unless this call measured them again
+    key = lambda r: (r["task"], r["scenes"], r["way"])  # noqa: E731
+    done = {key(r) for r in rows}
+    rows = sorted([r for r in (json.loads(table.read_text()) if table.exists() else []) if key(r) not in done] + rows,
+                  key=lambda r: (list(TASKS).index(r["task"]), r["scenes"], r["way"] != "prior"))
+    table.write_text(json.dumps(rows, indent=1))
     (args.work / "cost.md").write_text(markdown(rows))
     print(markdown(rows))
 
