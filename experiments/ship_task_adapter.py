@@ -16,13 +16,16 @@ from pathlib import Path
 
 
 def train_seconds(run_dir: Path) -> float:
-    """A run's training time: the span of its TensorBoard events (evaluations included; resumed runs count
-    their pauses too, so ship from a run made in one go)."""
+    """A run's training time: the span of its TensorBoard events (evaluations included), summed over its event
+    files (one per start: the pause before a resumed run does not count)."""
     from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
-    events = EventAccumulator(str(run_dir / "tb")).Reload()
-    last = max(e.wall_time for tag in events.Tags()["scalars"] for e in events.Scalars(tag))
-    return last - events.FirstEventTimestamp()
+    total = 0.0
+    for path in sorted((run_dir / "tb").glob("events.out.tfevents.*")):
+        events = EventAccumulator(str(path)).Reload()
+        times = [e.wall_time for tag in events.Tags()["scalars"] for e in events.Scalars(tag)]
+        total += max(times, default=events.FirstEventTimestamp()) - events.FirstEventTimestamp()
+    return total
 
 
 def ship(run_dir: Path) -> Path:

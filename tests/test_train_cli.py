@@ -218,3 +218,19 @@ def test_sample_adapter_names_a_shipped_adapter(tmp_path, capsys):
     err = capsys.readouterr().err
     assert "--adapter no_such_task" in err and "shipped: stage1" in err
     assert main([*common, "--adapter", "stage1", "--checkpoint", "x", "--out", str(by_name)]) == 2
+
+
+def test_a_resumed_runs_training_time_leaves_out_the_pause(tmp_path):
+    from torch.utils.tensorboard import SummaryWriter
+
+    from experiments.ship_task_adapter import train_seconds
+
+    for start in range(2):  # two starts of a run, one second apart
+        writer = SummaryWriter(str(tmp_path / "tb"), filename_suffix=f".{start}")
+        for epoch in range(2):
+            writer.add_scalar("reward", 1.0, epoch)
+            writer.flush()
+            time.sleep(0.2)
+        writer.close()
+        time.sleep(1.0)
+    assert 0.2 <= train_seconds(tmp_path) < 1.0
