@@ -6,6 +6,10 @@ batch's device. They are registered by name in :data:`REWARDS` (add your own wit
   the metric's 1e-6), otherwise minus the total penetration volume (m^3) of the penetrating pairs. With
   ``per_object`` (our addition, default 0) also minus that much per colliding ground object: a scene with
   one colliding pair scores better than one with three, which the scene-level bonus does not tell apart.
+  With ``contact`` (our addition), ``{"pairs": [[a, b], ...], "volume": V}`` (classes or class groups such as
+  ``bed``), an overlap of such a pair up to V m^3 is contact, not penetration: the data put a nightstand's box
+  into its bed's (half the real nightstands, 62% of the procedural ones; at most 0.04 m^3 in the procedural
+  rooms), so a reward that counts that overlap teaches stage 1 to pull the nightstands away from the bed.
 * ``boundary`` (Alg. 2): +2 when no object's footprint (shrunk by ``shrink`` = 0.05 m per side, as the
   R_out metric) has more than ``threshold`` = 1e-5 m^2 outside the floor polygon, otherwise minus the total
   out-of-bound area (m^2) of those objects; with ``per_object`` also minus that much per such object.
@@ -121,14 +125,37 @@ def _out(values, batch: SceneBatch) -> torch.Tensor:
 @register_reward("collision")
 @single_thread()
 def collision_reward(batch: SceneBatch, threshold: float = geo.COLLISION_VOLUME, bonus: float = 1.0,
-                     per_object: float = 0.0) -> torch.Tensor:
+                     per_object: float = 0.0, contact: dict | None = None) -> torch.Tensor:
     """+``bonus`` when no ground objects penetrate, else minus the total penetration volume (m^3); minus
-    ``per_object`` for each colliding ground object (the Col_obj metric's count)."""
+    ``per_object`` for each colliding ground object (the Col_obj metric's count). ``contact``: class pairs
+    whose overlap up to ``contact["volume"]`` m^3 does not count."""
     vol = geo.box_overlap_volumes(batch.translations, batch.half_sizes, batch.yaws, batch.ground_mask)
     penetrating = vol > threshold
+    if contact:
+        penetrating &= ~(_contact_pairs(batch, contact["pairs"]) & (vol <= contact["volume"]))
     total = (vol * penetrating).triu(1).sum((1, 2))
     reward = torch.where(penetrating.flatten(1).any(1), -total, torch.full_like(total, bonus))
     return _out(reward - per_object * penetrating.any(2).sum(1), batch)
+
+
+def _contact_pairs(batch: SceneBatch, pairs: list) -> torch.Tensor:
+    """(B, N, N) bool: slots i, j whose classes form one of ``pairs`` (either order)."""
+    labels = batch.labels.clamp(min=0)
+    out = torch.zeros(labels.shape + labels.shape[-1:], dtype=torch.bool, device=labels.device)
+    for pair in pairs:
+        if len(pair) != 2:
+            raise ValueError(f"collision contact: each pair names two classes or class groups, got {pair!r}")
+        sides = []
+        for name in pair:
+            members = CLASS_GROUPS.get(name, (name,))
+            columns = [batch.spec.classes.index(c) for c in members if c in batch.spec.classes]
+            if not columns:
+                raise ValueError(f"collision contact: {name!r} is neither a class group ({', '.join(sorted(CLASS_GROUPS))}) "
+                                 f"nor a class of {batch.spec.name} rooms")
+            sides.append(torch.isin(labels, torch.tensor(columns, device=labels.device)) & batch.mask)
+        a, b = sides
+        out |= (a[:, :, None] & b[:, None, :]) | (b[:, :, None] & a[:, None, :])
+    return out
 
 
 @register_reward("boundary")

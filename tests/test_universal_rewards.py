@@ -36,6 +36,21 @@ def test_collision_reward_is_one_without_collision_and_decreases_with_overlap():
     assert r[2] > r[3] > r[4]
 
 
+def test_collision_contact_spares_the_datas_shallow_nightstand_bed_overlap_only():
+    bed = box("double_bed", 2.0, 1.5, 1.0, 1.0, hy=0.5)  # x 1..3
+    shallow = make_layout([bed, box("nightstand", 0.8, 1.0, 0.25, 0.25, hy=0.3)])  # 0.05 x 0.5 x 0.6 = 0.015 m^3
+    deep = make_layout([bed, box("nightstand", 1.0, 1.0, 0.25, 0.25, hy=0.3)])  # 0.075 m^3: inside the bed
+    other = make_layout([box("wardrobe", 1.0, 1.5, 0.5, 0.3), box("cabinet", 1.95, 1.5, 0.5, 0.3)])  # 0.024 m^3
+    scenes = batch(shallow, deep, other)
+    contact = {"pairs": [["nightstand", "bed"]], "volume": 0.04}
+    plain = collision_reward(scenes, per_object=1.0)
+    spared = collision_reward(scenes, per_object=1.0, contact=contact)
+    np.testing.assert_allclose(plain.numpy(), [-0.015 - 2, -0.075 - 2, -0.024 - 2], rtol=1e-5)
+    np.testing.assert_allclose(spared.numpy(), [1.0, -0.075 - 2, -0.024 - 2], rtol=1e-5)
+    with pytest.raises(ValueError, match="'sofa_bed' is neither a class group"):
+        collision_reward(scenes, contact={"pairs": [["nightstand", "sofa_bed"]], "volume": 0.04})
+
+
 def test_boundary_reward_is_two_inside_and_minus_the_out_area_otherwise():
     inside = make_layout([box("nightstand", 1.0, 1.0, 0.3, 0.3)], floor=L_SHAPE)
     through = make_layout([box("wardrobe", 3.0, 2.0, 0.5, 0.5), box("cabinet", 2.0, 2.0, 0.5, 0.5)], floor=L_SHAPE)
