@@ -57,6 +57,17 @@ def test_eval_prior_lists_the_colliding_class_pairs_with_their_overlap():
     assert script.collision_pairs([clear])["pairs"] == 0
 
 
+def test_collision_pairs_separates_nightstand_bed_contact_from_other_collisions():
+    script = load("collision_pairs")
+    tucked = make_layout([box("double_bed", 1.5, 1.5, 1.0, 1.0), box("nightstand", 2.65, 1.5, 0.25, 0.25),
+                          box("chair", 3.6, 0.4, 0.2, 0.2)])
+    desk = make_layout([box("desk", 1.0, 1.0, 0.6, 0.3), box("chair", 1.0, 1.4, 0.25, 0.25)])  # 0.15 m into it
+    res = script.collisions([tucked, desk])
+    assert res["Col_obj"] == pytest.approx(4 / 5) and res["only_nightstand_bed"] == pytest.approx(2 / 5)
+    assert res["pairs"] == {("double_bed", "nightstand"): 1, ("chair", "desk"): 1}
+    assert res["volumes"] == pytest.approx([0.1 * 0.5 * 0.8], rel=1e-4)
+
+
 def test_eval_prior_reports_task_success_per_row():
     """research/eval_prior.py --tasks: each row gets the five checkers' rates, printed in percent."""
     script = load("eval_prior")

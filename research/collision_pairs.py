@@ -1,0 +1,69 @@
+"""Which pairs of classes make Col_obj: for each scene file, Col_obj (the metric's colliding ground objects over
+ground objects), the share of ground objects whose only collisions are with a bed while being a nightstand (or
+the reverse), the share of colliding pairs by class pair, and the overlap volumes of the nightstand-bed pairs.
+It shows how much of a collision fall comes from pulling nightstands off their bed, whose box the data's
+nightstands overlap on purpose.
+
+    .venv/bin/python research/collision_pairs.py data=FLOORS.json prior=PRIOR.json stage1=STAGE1.json
+
+Each argument is ``NAME=FILE`` (or a file, named by its stem): a neutral-JSON bedroom scene file.
+"""
+
+from __future__ import annotations
+
+import sys
+from collections import Counter
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from iarcs_env import geometry as geo  # noqa: E402
+from iarcs_env.datasets import load_layouts  # noqa: E402
+from iarcs_env.metrics import batch_float64  # noqa: E402
+from iarcs_env.relations import BEDS  # noqa: E402
+
+
+def nightstand_bed(a: str, b: str) -> bool:
+    return {a, b} & {"nightstand"} and {a, b} & set(BEDS) and a != b
+
+
+def collisions(layouts, chunk: int = 100) -> dict:
+    pairs, volumes = Counter(), []
+    colliding = ground = only_nightstand_bed = 0
+    for s in range(0, len(layouts), chunk):
+        part = layouts[s:s + chunk]
+        batch = batch_float64(part)
+        vol = geo.box_overlap_volumes(batch.translations, batch.half_sizes, batch.yaws, batch.ground_mask).numpy()
+        hit = vol > geo.COLLISION_VOLUME
+        ground += int(batch.ground_mask.sum())
+        colliding += int(hit.any(2).sum())
+        for k, lay in enumerate(part):
+            for i, j in zip(*np.nonzero(np.triu(hit[k]))):
+                pairs[tuple(sorted((lay.labels[i], lay.labels[j])))] += 1
+                if nightstand_bed(lay.labels[i], lay.labels[j]):
+                    volumes.append(vol[k, i, j])
+            for i in range(len(lay)):
+                partners = [lay.labels[j] for j in np.nonzero(hit[k, i])[0]]
+                only_nightstand_bed += bool(partners) and all(nightstand_bed(lay.labels[i], p) for p in partners)
+    return {"Col_obj": colliding / ground, "only_nightstand_bed": only_nightstand_bed / ground, "pairs": pairs,
+            "volumes": np.array(volumes)}
+
+
+def main(args: list[str]) -> None:
+    if not args:
+        sys.exit(__doc__)
+    for arg in args:
+        name, _, path = arg.rpartition("=")
+        c = collisions(load_layouts(path, "bedroom"))
+        total = sum(c["pairs"].values())
+        top = ", ".join(f"{a}-{b} {n / total:.0%}" for (a, b), n in c["pairs"].most_common(5))
+        v = c["volumes"]
+        print(f"{name or Path(path).stem}: Col_obj {100 * c['Col_obj']:.1f}%, of which nightstand-bed contact only "
+              f"{100 * c['only_nightstand_bed']:.1f} points; pairs: {top}; nightstand-bed overlap m^3 p50 "
+              f"{np.median(v):.3f} p90 {np.quantile(v, 0.9):.3f} max {v.max():.3f}")
+
+
+if __name__ == "__main__":
+    main(sys.argv[1:])
