@@ -7,8 +7,9 @@ from the stage-1 adapter) against single-stage (universal and task rewards toget
     .venv/bin/python experiments/stage2_ablations.py plot [--epochs 100]
 
 ``run`` trains CONFIG with the seed in ``out/ablation/<config>_s<seed>`` (resuming one that stopped). ``plot``
-draws every run there into docs/figures/ablation_reflection.png and docs/figures/ablation_stages.png (each seed
-thin, their mean thick; success on the run's 64 evaluation floors) and prints the final and best successes.
+draws every run there into docs/figures/ablation_reflection.png and docs/figures/ablation_stages.png (task
+success and Col_obj on the run's 64 evaluation floors; each seed thin, their mean thick) and prints each run's
+last, highest and lowest value.
 """
 
 from __future__ import annotations
@@ -42,35 +43,35 @@ def run(config: Path, seed: int, epochs: int) -> Path:
     return out
 
 
-def success_curve(run_dir: Path, task: str, epochs: int) -> tuple[list[int], list[float]]:
-    """(epochs, task success on the evaluation floors) of a run, up to ``epochs``."""
+def curve(run_dir: Path, key: str, epochs: int) -> tuple[list[int], list[float]]:
+    """(epochs, ``key`` on the evaluation floors) of a run, up to ``epochs``."""
     from agents.config import read_jsonl
 
     rows = [r for r in read_jsonl(run_dir / "eval.jsonl") if r["epoch"] <= epochs]
-    return [r["epoch"] for r in rows], [r[f"task_success_{task}"] for r in rows]
+    return [r["epoch"] for r in rows], [r[key] for r in rows]
 
 
 COLOURS = {0: (31, 119, 180), 1: (255, 127, 14)}
 W, H, LEFT, TOP, BOTTOM = 460, 320, 52, 30, 40
 
 
-def draw_panel(draw, font, ox: int, title: str, epochs: int, arms: dict[str, list[tuple[list, list]]]) -> None:
-    """One panel at x offset ``ox``: each arm's seeds thin, their mean thick, success 0-1 against epochs."""
+def draw_panel(draw, font, ox: int, oy: int, title: str, epochs: int, arms: dict[str, list[tuple[list, list]]]) -> None:
+    """One panel at (``ox``, ``oy``): each arm's seeds thin, their mean thick, a rate 0-1 against epochs."""
     import numpy as np
 
     pw, ph = W - LEFT - 15, H - TOP - BOTTOM
-    to_xy = lambda x, y: (ox + LEFT + x / epochs * pw, TOP + ph - y * ph)  # noqa: E731
-    draw.text((ox + LEFT, 8), title, fill="black", font=font)
-    draw.rectangle([ox + LEFT, TOP, ox + LEFT + pw, TOP + ph], outline="black")
+    to_xy = lambda x, y: (ox + LEFT + x / epochs * pw, oy + TOP + ph - y * ph)  # noqa: E731
+    draw.text((ox + LEFT, oy + 8), title, fill="black", font=font)
+    draw.rectangle([ox + LEFT, oy + TOP, ox + LEFT + pw, oy + TOP + ph], outline="black")
     for k in range(6):  # success ticks 0, 0.2, ... 1
         _, py = to_xy(0, k / 5)
         draw.line([ox + LEFT - 4, py, ox + LEFT + pw, py], fill=(225, 225, 225))
         draw.text((ox + 8, py - 7), f"{k * 20}%", fill="black", font=font)
     for k in range(0, epochs + 1, max(10, epochs // 5)):
         px, _ = to_xy(k, 0)
-        draw.line([px, TOP + ph, px, TOP + ph + 4], fill="black")
-        draw.text((px - 8, TOP + ph + 6), str(k), fill="black", font=font)
-    draw.text((ox + LEFT + pw // 2 - 20, H - 16), "epoch", fill="black", font=font)
+        draw.line([px, oy + TOP + ph, px, oy + TOP + ph + 4], fill="black")
+        draw.text((px - 8, oy + TOP + ph + 6), str(k), fill="black", font=font)
+    draw.text((ox + LEFT + pw // 2 - 20, oy + H - 16), "epoch", fill="black", font=font)
     for a, (label, curves) in enumerate(arms.items()):
         colour = COLOURS[a]
         pale = tuple(int(c + (255 - c) * 0.6) for c in colour)
@@ -80,13 +81,13 @@ def draw_panel(draw, font, ox: int, title: str, epochs: int, arms: dict[str, lis
             n = min(len(x) for x, _ in curves)
             mean = np.mean([y[:n] for _, y in curves], 0)
             draw.line([to_xy(*p) for p in zip(curves[0][0][:n], mean)], fill=colour, width=3)
-        ly = TOP + 8 + 18 * a
+        ly = oy + TOP + 8 + 18 * a
         draw.line([ox + LEFT + 10, ly + 7, ox + LEFT + 35, ly + 7], fill=colour, width=3)
         draw.text((ox + LEFT + 42, ly), f"{label} ({len(curves)} seed{'' if len(curves) == 1 else 's'})", fill="black", font=font)
 
 
 def plot(epochs: int) -> None:
-    """Draw each ablation's figure (Pillow) and print every run's final and best success."""
+    """Draw each ablation's figure (Pillow) and print every run's last, highest and lowest value."""
     from PIL import Image, ImageDraw, ImageFont
 
     try:
@@ -94,17 +95,19 @@ def plot(epochs: int) -> None:
     except TypeError:  # an old Pillow: the bitmap font
         font = ImageFont.load_default()
     for figure, (tasks, arms) in ABLATIONS.items():
-        image = Image.new("RGB", (W * len(tasks), H), "white")
+        image = Image.new("RGB", (W * len(tasks), 2 * H), "white")
         draw = ImageDraw.Draw(image)
         for i, task in enumerate(tasks):
-            curves = {}
-            for label, pattern in arms.items():
-                runs = sorted(RUNS.glob(pattern.format(task=task) + "_s[0-9]*/eval.jsonl"))
-                curves[label] = [success_curve(r.parent, task, epochs) for r in runs]
-                for r, (x, y) in zip(runs, curves[label]):
-                    print(f"{figure} {task} {label} {r.parent.name}: {y[-1]:.1%} at epoch {x[-1]}, "
-                          f"best {max(y):.1%}")
-            draw_panel(draw, font, i * W, f"{task}: task success, 64 evaluation floors", epochs, curves)
+            for row, (key, title) in enumerate([(f"task_success_{task}", f"{task}: task success"),
+                                                ("Col_obj", f"{task}: Col_obj")]):
+                curves = {}
+                for label, pattern in arms.items():
+                    runs = sorted(RUNS.glob(pattern.format(task=task) + "_s[0-9]*/eval.jsonl"))
+                    curves[label] = [curve(r.parent, key, epochs) for r in runs]
+                    for r, (x, y) in zip(runs, curves[label]):
+                        print(f"{figure} {task} {label} {r.parent.name} {key}: {y[-1]:.1%} at epoch {x[-1]} "
+                              f"(max {max(y):.1%}, min {min(y):.1%})")
+                draw_panel(draw, font, i * W, row * H, f"{title}, 64 evaluation floors", epochs, curves)
         FIGURES.mkdir(parents=True, exist_ok=True)
         image.save(FIGURES / f"{figure}.png")
         print(f"-> {FIGURES / f'{figure}.png'}")
