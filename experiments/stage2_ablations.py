@@ -55,7 +55,8 @@ COLOURS = {0: (31, 119, 180), 1: (255, 127, 14)}
 W, H, LEFT, TOP, BOTTOM = 460, 320, 52, 30, 40
 
 
-def draw_panel(draw, font, ox: int, oy: int, title: str, epochs: int, arms: dict[str, list[tuple[list, list]]]) -> None:
+def draw_panel(draw, font, ox: int, oy: int, title: str, epochs: int,
+               arms: dict[str, list[tuple[list, list]]]) -> None:
     """One panel at (``ox``, ``oy``): each arm's seeds thin, their mean thick, a rate 0-1 against epochs."""
     import numpy as np
 
@@ -83,7 +84,8 @@ def draw_panel(draw, font, ox: int, oy: int, title: str, epochs: int, arms: dict
             draw.line([to_xy(*p) for p in zip(curves[0][0][:n], mean)], fill=colour, width=3)
         ly = oy + TOP + 8 + 18 * a
         draw.line([ox + LEFT + 10, ly + 7, ox + LEFT + 35, ly + 7], fill=colour, width=3)
-        draw.text((ox + LEFT + 42, ly), f"{label} ({len(curves)} seed{'' if len(curves) == 1 else 's'})", fill="black", font=font)
+        seeds = f"{len(curves)} seed{'' if len(curves) == 1 else 's'}"
+        draw.text((ox + LEFT + 42, ly), f"{label} ({seeds})", fill="black", font=font)
 
 
 def plot(epochs: int) -> None:
@@ -117,7 +119,8 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     sub = parser.add_subparsers(dest="command", required=True)
     p = sub.add_parser("run", help="train one arm with one seed")
-    p.add_argument("config", type=Path, help="the arm's config (experiments/task_*.yaml or experiments/ablations/task_*.yaml)")
+    p.add_argument("config", type=Path,
+                   help="the arm's config (experiments/task_*.yaml or experiments/ablations/task_*.yaml)")
     p.add_argument("--seed", type=int, required=True)
     p.add_argument("--epochs", type=int, default=100, help="epochs (default 100)")
     p = sub.add_parser("plot", help="draw the two figures from the runs in out/ablation")

@@ -132,6 +132,8 @@ def collision_reward(batch: SceneBatch, threshold: float = geo.COLLISION_VOLUME,
     vol = geo.box_overlap_volumes(batch.translations, batch.half_sizes, batch.yaws, batch.ground_mask)
     penetrating = vol > threshold
     if contact:
+        if set(contact) != {"pairs", "volume"}:
+            raise ValueError(f"collision contact: expected {{pairs: [[a, b], ...], volume: m^3}}, got {contact!r}")
         penetrating &= ~(_contact_pairs(batch, contact["pairs"]) & (vol <= contact["volume"]))
     total = (vol * penetrating).triu(1).sum((1, 2))
     reward = torch.where(penetrating.flatten(1).any(1), -total, torch.full_like(total, bonus))
@@ -150,8 +152,8 @@ def _contact_pairs(batch: SceneBatch, pairs: list) -> torch.Tensor:
             members = CLASS_GROUPS.get(name, (name,))
             columns = [batch.spec.classes.index(c) for c in members if c in batch.spec.classes]
             if not columns:
-                raise ValueError(f"collision contact: {name!r} is neither a class group ({', '.join(sorted(CLASS_GROUPS))}) "
-                                 f"nor a class of {batch.spec.name} rooms")
+                raise ValueError(f"collision contact: {name!r} is neither a class group "
+                                 f"({', '.join(sorted(CLASS_GROUPS))}) nor a class of {batch.spec.name} rooms")
             sides.append(torch.isin(labels, torch.tensor(columns, device=labels.device)) & batch.mask)
         a, b = sides
         out |= (a[:, :, None] & b[:, None, :]) | (b[:, :, None] & a[:, None, :])

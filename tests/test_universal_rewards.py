@@ -49,6 +49,8 @@ def test_collision_contact_spares_the_datas_shallow_nightstand_bed_overlap_only(
     np.testing.assert_allclose(spared.numpy(), [1.0, -0.075 - 2, -0.024 - 2], rtol=1e-5)
     with pytest.raises(ValueError, match="'sofa_bed' is neither a class group"):
         collision_reward(scenes, contact={"pairs": [["nightstand", "sofa_bed"]], "volume": 0.04})
+    with pytest.raises(ValueError, match="expected .pairs"):
+        collision_reward(scenes, contact={"pairs": [["nightstand", "bed"]]})
 
 
 def test_boundary_reward_is_two_inside_and_minus_the_out_area_otherwise():
