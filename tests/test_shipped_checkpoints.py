@@ -17,8 +17,8 @@ import pytest
 import torch
 
 from agents.denoiser import ScenePrior
-from agents.policy import DiffusionPolicy
 from agents.train import load_stage1_policy, shipped_adapter_path, shipped_adapters, shipped_task_dir, stage1_adapter_path
+from experiments.commands.prior import load_sampler
 from iarcs_env.datasets.procedural import generate_layouts
 from iarcs_env.tasks import get_task
 
@@ -37,9 +37,8 @@ def sample(room: str, adapter: str | None) -> dict:
     elif adapter == "stage1":
         batch = load_stage1_policy(room).sample(floors, generator=generator)
     else:  # a task adapter, loaded as `iarcs sample --adapter TASK` loads it
-        policy = DiffusionPolicy(ScenePrior.load_default(room), adapter="scratch")
-        policy.load_adapter(shipped_adapter_path(room, adapter), "sampled")
-        batch = policy.prior.sample(floors, generator=generator, eps_fn=policy.eps)
+        prior, policy = load_sampler(str(shipped_adapter_path(room, adapter)), room)
+        batch = prior.sample(floors, generator=generator, eps_fn=policy.eps)
     return {"labels": [lay.labels for lay in batch.to_layouts()],
             "geometry": [np.concatenate([lay.translations, lay.half_sizes, lay.yaws[:, None]], 1).round(6).tolist()
                          for lay in batch.to_layouts()]}
