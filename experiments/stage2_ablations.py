@@ -1,13 +1,15 @@
 """The paper's two stage-2 ablations (issue 38, item 2), as task success against epochs with two training seeds:
 (a) with and without reward reflection, on reach_1m and two_nightstands; (b) two-stage (the task adapter starts
-from the stage-1 adapter) against single-stage (universal and task rewards together, from the prior), on reach_1m.
+from the stage-1 adapter) against single-stage (universal and task rewards together, from the prior), on reach_1m;
+and the two agents' programs (item 1): the offline planner's against the litellm agent's recorded answers
+(experiments/llm_replay.py serving them while the arm trains).
 
     .venv/bin/python experiments/stage2_ablations.py run experiments/ablations/task_reach_1m_no_reflection.yaml --seed 0
         [--epochs 100]   (each arm: experiments/task_<task>.yaml or experiments/ablations/task_<task>_*.yaml)
     .venv/bin/python experiments/stage2_ablations.py plot [--epochs 100]
 
 ``run`` trains CONFIG with the seed in ``out/ablation/<config>_s<seed>`` (resuming one that stopped). ``plot``
-draws every run there into docs/figures/ablation_reflection.png and docs/figures/ablation_stages.png (task
+draws every run there into docs/figures/ablation_{reflection,stages,agents}.png (task
 success and Col_obj on the run's 64 evaluation floors; each seed thin, their mean thick) and prints each run's
 last, highest and lowest value.
 """
@@ -28,6 +30,8 @@ ABLATIONS = {
     "ablation_reflection": (["reach_1m", "two_nightstands"],
                             {"with reflection": "task_{task}", "without reflection": "task_{task}_no_reflection"}),
     "ablation_stages": (["reach_1m"], {"two-stage": "task_{task}", "single-stage": "task_{task}_single_stage"}),
+    "ablation_agents": (["reach_1m", "two_nightstands"],
+                        {"offline planner": "task_{task}", "recorded LLM answers": "task_{task}_llm"}),
 }
 
 
@@ -123,7 +127,7 @@ def main() -> None:
                    help="the arm's config (experiments/task_*.yaml or experiments/ablations/task_*.yaml)")
     p.add_argument("--seed", type=int, required=True)
     p.add_argument("--epochs", type=int, default=100, help="epochs (default 100)")
-    p = sub.add_parser("plot", help="draw the two figures from the runs in out/ablation")
+    p = sub.add_parser("plot", help="draw the figures from the runs in out/ablation")
     p.add_argument("--epochs", type=int, default=100, help="plot up to this epoch (default 100)")
     args = parser.parse_args()
     if args.command == "run":
