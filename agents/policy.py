@@ -16,10 +16,7 @@ reference predicts (from x0_hat) to be ``empty`` keeps the reference's eps on ev
 is class ``empty`` *and* geometry 0, so without this rule an adapter of translation and yaw alone still
 removes objects by pulling their geometry to 0 (a stage-1 run did: 3.7 -> 3.3 objects per room) or could
 fill empty slots. So an adapter of ``("position", "yaw")`` moves and turns objects on the floor but does not
-add, remove, resize, lift or sink them. With ``new_objects`` (instead of ``class``) the rule turns round for the
-empty slots: the adapter decides every feature of a slot the reference leaves empty (it may put an object there)
-while the reference's objects keep their class. So a task can add the nightstand or TV stand it needs, but
-cannot get it by relabelling the room's chairs and desks, which every relational adapter with ``class`` did. The reference is saved inside the adapter's folder (``reference/``),
+add, remove, resize, lift or sink them. The reference is saved inside the adapter's folder (``reference/``),
 so a saved adapter samples the same wherever it is loaded.
 """
 
@@ -46,8 +43,6 @@ FEATURE_GROUPS = {"position": [0, 2], "elevation": [1], "footprint": [3, 5], "he
 """The slot features (iarcs_env.scene: translation xyz, half size xyz, cos/sin yaw, class) an adapter can adapt,
 by group: position on the floor (x, z), elevation (y, the centre's height), footprint, height, yaw, class.
 ``translation`` names position and elevation, ``size`` footprint and height."""
-NEW_OBJECTS = "new_objects"
-"""Not a feature group: the adapter may fill the slots its reference leaves empty (module docstring)."""
 ALIASES = {"translation": ("position", "elevation"), "size": ("footprint", "height")}
 ADAPTED_FILE = "iarcs_adapted.json"
 """Written beside peft's files: the feature groups the adapter adapts (absent: all of them) and the name of
@@ -56,21 +51,13 @@ REFERENCE_DIR = "reference"
 
 
 def check_feature_groups(groups) -> tuple[str, ...]:
-    """The adapted feature groups in canonical order (``new_objects`` last); every group when ``groups`` is empty."""
+    """The adapted feature groups in canonical order; every group when ``groups`` is empty."""
     groups = [part for g in (groups or FEATURE_GROUPS) for part in ALIASES.get(g, (g,))]
-    unknown = sorted(set(groups) - set(FEATURE_GROUPS) - {NEW_OBJECTS})
+    unknown = sorted(set(groups) - set(FEATURE_GROUPS))
     if unknown:
         raise ValueError(f"unknown feature group(s) {', '.join(unknown)}; choose from {', '.join(FEATURE_GROUPS)} "
-                         f"(or translation = position and elevation, size = footprint and height), or {NEW_OBJECTS}")
-    if NEW_OBJECTS in groups and "class" in groups:
-        raise ValueError(f"adapt: {NEW_OBJECTS} and class exclude each other (class may relabel any object, "
-                         f"{NEW_OBJECTS} only fills the slots the reference leaves empty); keep one")
-    return tuple(g for g in (*FEATURE_GROUPS, NEW_OBJECTS) if g in groups)
-
-
-def adapts_everything(groups: Sequence[str]) -> bool:
-    """True when an adapter of ``groups`` has no reference: it adapts every feature of every slot."""
-    return set(FEATURE_GROUPS) <= set(groups)
+                         "(or translation = position and elevation, size = footprint and height)")
+    return tuple(g for g in FEATURE_GROUPS if g in groups)
 
 
 class MeanNormal(torch.distributions.Normal):
@@ -128,7 +115,7 @@ class DiffusionPolicy(nn.Module):
         adapt follow ``init_from`` (kept frozen, and saved with it), or the prior."""
         self.model.add_adapter(name, self.lora_config)
         self.adapted[name] = check_feature_groups(adapted or (self.adapted[init_from] if init_from else ()))
-        self.references[name] = None if adapts_everything(self.adapted[name]) else init_from
+        self.references[name] = init_from if len(self.adapted[name]) < len(FEATURE_GROUPS) else None
         if init_from is not None:
             src = {k: v for k, v in self.model.state_dict().items() if f".{init_from}." in k}
             self.model.load_state_dict({k.replace(f".{init_from}.", f".{name}."): v for k, v in src.items()},
@@ -201,12 +188,11 @@ class DiffusionPolicy(nn.Module):
         """(F,) bool mask of the slot features an adapter (default: the active one) leaves to its reference
         (None: it adapts all)."""
         groups = self.adapted.get(adapter or self.adapter, tuple(FEATURE_GROUPS))
-        if adapts_everything(groups):
+        if len(groups) == len(FEATURE_GROUPS):
             return None
         keep = torch.ones(self.prior.spec.feature_dim, dtype=torch.bool)
         for g in groups:
-            if g in FEATURE_GROUPS:
-                keep[FEATURE_GROUPS[g]] = False
+            keep[FEATURE_GROUPS[g]] = False
         return keep
 
     @contextlib.contextmanager
@@ -240,10 +226,9 @@ class DiffusionPolicy(nn.Module):
             else:
                 base = self.eps(x_t, t, floor=floor, floor_context=floor_context, adapter=reference)
         keep = keep.to(eps.device).expand_as(eps)
-        if "class" not in self.adapted[name]:  # slots the reference leaves empty: the reference's, or the adapter's
+        if "class" not in self.adapted[name]:  # slots the reference leaves empty stay the reference's
             classes = self.schedule.predict_x0(x_t, t, base)[..., FEATURE_GROUPS["class"]]
-            empty = (classes.argmax(-1) == classes.shape[-1] - 1)[..., None]
-            keep = keep & ~empty if NEW_OBJECTS in self.adapted[name] else keep | empty
+            keep = keep | (classes.argmax(-1) == classes.shape[-1] - 1)[..., None]
         return torch.where(keep, base, eps)
 
     def forward(self, x_t: torch.Tensor, t: torch.Tensor, floor: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:

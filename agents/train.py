@@ -43,8 +43,7 @@ class TrainConfig:
     """Feature groups the adapter adapts (agents.policy.FEATURE_GROUPS: position, elevation, footprint, height,
     yaw, class; translation = position and elevation, size = footprint and height); the others follow
     ``init_adapter`` (the prior without one). Empty: all of them, or with ``init_adapter`` the same as that
-    adapter. ``[elevation, height]`` lowers or raises objects but keeps which objects a room has and where;
-    ``new_objects`` in place of ``class`` lets it fill empty slots but not relabel objects (agents/policy.py)."""
+    adapter. ``[elevation, height]`` lowers or raises objects but keeps which objects a room has and where."""
     algorithm: str = "ddpo"
     """ddpo (= ddpo-is), ddpo-sf or physics-gradient (agents/physics_gradient.py)."""
     num_envs: int = 32

@@ -372,50 +372,20 @@ def test_a_placement_adapter_moves_objects_but_keeps_the_priors_classes_and_size
         DiffusionPolicy(tiny_prior(), num_steps=STEPS, adapted=["colour"])
 
 
-def perturb_lora(policy, adapter, seed):
-    """A "trained" adapter: seeded noise on its (zero-initialised) LoRA B matrices."""
-    g = torch.Generator().manual_seed(seed)
-    with torch.no_grad():
-        for name, p in policy.model.named_parameters():
-            if "lora_B" in name and f".{adapter}." in name:
-                p.add_(0.3 * torch.randn(p.shape, generator=g))
-
-
-def test_a_new_objects_adapter_fills_empty_slots_but_never_relabels_the_references_objects():
-    """adapt=[position, yaw, new_objects]: on the slots its reference (stage 1) predicts empty the task adapter
-    decides every feature, class included; on the reference's objects the class (and size) stay the reference's."""
-    policy = DiffusionPolicy(tiny_prior(), num_steps=STEPS)
-    perturb_lora(policy, "stage1", 0)
-    policy.add_adapter("task", init_from="stage1", adapted=["new_objects", "yaw", "position"])
-    perturb_lora(policy, "task", 1)
-    assert policy.adapted["task"] == ("position", "yaw", "new_objects") and policy.references["task"] == "stage1"
-    x = torch.randn(3, policy.prior.num_slots, policy.prior.spec.feature_dim, generator=torch.Generator().manual_seed(1))
-    x[..., 8:] = -1.0
-    x[:, :4, :8], x[:, :4, -1], x[:, 4:, 8] = 0.0, 1.0, 1.0  # near-clean: 4 empty slots, then objects
-    t, floor = torch.full((3,), 10), policy.prior.floor_condition(FLOORS[:3])
-    with torch.no_grad():
-        task, stage1 = policy.eps(x, t, floor), policy.eps(x, t, floor, adapter="stage1")
-    classes = policy.schedule.predict_x0(x, t, stage1)[..., 8:]
-    empty = classes.argmax(-1) == classes.shape[-1] - 1
-    assert empty[:, :4].all() and not empty[:, 4:].any()
-    diff = (task - stage1).abs()
-    assert diff[empty][:, 8:].amax() > 1e-6 and diff[empty][:, 3:6].amax() > 1e-6  # empty slots: class and size its own
-    assert torch.all(diff[~empty][:, 8:] == 0) and torch.all(diff[~empty][:, 3:6] == 0)  # objects: classes kept
-    assert diff[~empty][:, [0, 2, 6, 7]].amin(0).min() > 0  # ... and moved and turned
-    with pytest.raises(ValueError, match="new_objects and class exclude each other"):
-        DiffusionPolicy(tiny_prior(), num_steps=STEPS, adapted=["class", "new_objects"])
-    every = DiffusionPolicy(tiny_prior(), num_steps=STEPS, adapted=["translation", "size", "yaw", "class"])
-    every.add_adapter("task", init_from="stage1")
-    assert every.references["task"] is None and every.reference_features("task") is None
-
-
 def test_a_partial_adapter_follows_the_adapter_it_starts_from_and_carries_it_when_saved(tmp_path):
     """A stage-2 adapter of some features only (here height) keeps the stage-1 adapter's prediction, not the
     prior's, on the others; saved and loaded into a policy without the stage-1 adapter it samples the same."""
+    def perturb(policy, adapter, seed):
+        g = torch.Generator().manual_seed(seed)
+        with torch.no_grad():
+            for name, p in policy.model.named_parameters():
+                if "lora_B" in name and f".{adapter}." in name:
+                    p.add_(0.3 * torch.randn(p.shape, generator=g))
+
     policy = DiffusionPolicy(tiny_prior(), num_steps=STEPS)
-    perturb_lora(policy, "stage1", 0)  # a "trained" stage-1 adapter of every feature
+    perturb(policy, "stage1", 0)  # a "trained" stage-1 adapter of every feature
     policy.add_adapter("task", init_from="stage1", adapted=["height"])
-    perturb_lora(policy, "task", 1)  # a "trained" task adapter
+    perturb(policy, "task", 1)  # a "trained" task adapter
     assert policy.references == {"stage1": None, "task": "stage1"} and policy.adapter == "task"
     x = torch.randn(3, policy.prior.num_slots, policy.prior.spec.feature_dim, generator=torch.Generator().manual_seed(2))
     t, floor = torch.full((3,), 300), policy.prior.floor_condition(FLOORS[:3])
