@@ -1,5 +1,6 @@
 """The paper's two stage-2 ablations (issue 38, item 2), as task success against epochs with two training seeds:
-(a) with and without reward reflection, on reach_1m and two_nightstands; (b) two-stage (the task adapter starts
+(a) with and without reward reflection, on two_nightstands (reach_1m's, on the first stage-1 adapter:
+docs/figures/ablation_reflection_stage1_collision.png); (b) two-stage (the task adapter starts
 from the stage-1 adapter) against single-stage (universal and task rewards together, from the prior), on reach_1m;
 and the two agents' programs (item 1): the offline planner's against the litellm agent's recorded answers
 (experiments/llm_replay.py serving them while the arm trains).
@@ -27,7 +28,7 @@ RUNS = ROOT / "out" / "ablation"
 FIGURES = ROOT / "docs" / "figures"
 # figure -> (tasks, {arm label: config name pattern})
 ABLATIONS = {
-    "ablation_reflection": (["reach_1m", "two_nightstands"],
+    "ablation_reflection": (["two_nightstands"],
                             {"with reflection": "task_{task}", "without reflection": "task_{task}_no_reflection"}),
     "ablation_stages": (["reach_1m"], {"two-stage": "task_{task}", "single-stage": "task_{task}_single_stage"}),
     "ablation_agents": (["reach_1m", "two_nightstands"],
