@@ -5,7 +5,7 @@ from the stage-1 adapter) against single-stage (universal and task rewards toget
 and the two agents' programs (item 1): the offline planner's against the litellm agent's recorded answers
 (experiments/llm_replay.py serving them while the arm trains).
 
-    .venv/bin/python experiments/stage2_ablations.py run experiments/ablations/task_reach_1m_no_reflection.yaml --seed 0
+    .venv/bin/python experiments/stage2_ablations.py run experiments/ablations/task_two_nightstands_no_reflection.yaml --seed 0
         [--epochs 100]   (each arm: experiments/task_<task>.yaml or experiments/ablations/task_<task>_*.yaml)
     .venv/bin/python experiments/stage2_ablations.py plot [--epochs 100]
 
