@@ -2,8 +2,8 @@
 the litellm agent's whole path (prompts, litellm's HTTP call, parsing, program checks, the sandbox) without a
 model, a key or a network; issue 38 trains the recorded programs against the offline planner's with it.
 
-    python experiments/llm_replay.py --port 8765 -- .venv/bin/iarcs train --config CONFIG   # serves while it runs
-    python experiments/llm_replay.py --port 8765                                            # serves until Ctrl-C
+    python experiments/llm_replay.py --port 8765 -- .venv/bin/iarcs train --config CONFIG  # serves while it runs
+    python experiments/llm_replay.py --port 8765                                           # until Ctrl-C
 
 with a task block ``model: openai/recorded`` and ``api_base: http://127.0.0.1:8765/v1`` in CONFIG
 (experiments/ablations/task_*_llm.yaml). A recorded answer is a JSON file ``TASK.json`` holding ``{"task",
@@ -61,7 +61,8 @@ def choose(answers: dict, messages: list[dict]) -> tuple[dict | None, str]:
 
 
 class ReplayServer:
-    """``POST /v1/chat/completions`` answered from ``answers``; 404 with the reason when none fits."""
+    """``POST /v1/chat/completions`` answered by :meth:`answer` (from ``answers``; 404 with the reason when none
+    fits). The tests' scripted server (tests/test_llm_agent.py) overrides :meth:`answer`."""
 
     def __init__(self, answers: dict, port: int = 0, log: Path | None = None):
         self.answers, self.log = answers, log
@@ -71,13 +72,16 @@ class ReplayServer:
         class Handler(BaseHTTPRequestHandler):
             def do_POST(self):
                 body = json.loads(self.rfile.read(int(self.headers.get("Content-Length", 0))))
-                status, payload = server.answer(body)
+                status, payload = server.answer(body, self.headers)
                 data = json.dumps(payload).encode()
-                self.send_response(status)
-                self.send_header("Content-Type", "application/json")
-                self.send_header("Content-Length", str(len(data)))
-                self.end_headers()
-                self.wfile.write(data)
+                try:
+                    self.send_response(status)
+                    self.send_header("Content-Type", "application/json")
+                    self.send_header("Content-Length", str(len(data)))
+                    self.end_headers()
+                    self.wfile.write(data)
+                except OSError:  # the client gave up (its timeout)
+                    pass
 
             def log_message(self, *args):
                 pass
@@ -87,7 +91,8 @@ class ReplayServer:
         self._thread = threading.Thread(target=self.httpd.serve_forever, kwargs={"poll_interval": 0.1}, daemon=True)
         self._thread.start()
 
-    def answer(self, body: dict) -> tuple[int, dict]:
+    def answer(self, body: dict, headers) -> tuple[int, dict]:
+        """(HTTP status, JSON payload) for one chat request."""
         entry, why = choose(self.answers, body.get("messages", []))
         record = {"kind": why if entry else "refused", "file": entry["file"] if entry else None}
         if entry is None:

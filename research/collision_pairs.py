@@ -1,18 +1,18 @@
 """Which pairs of classes make Col_obj: for each scene file, Col_obj (the metric's colliding ground objects over
 ground objects), the share of ground objects whose only collisions are with a bed while being a nightstand (or
-the reverse), the share of colliding pairs by class pair, and the overlap volumes of the nightstand-bed pairs.
-It shows how much of a collision fall comes from pulling nightstands off their bed, whose box the data's
-nightstands overlap on purpose.
+the reverse), the five commonest colliding class pairs with their share of the colliding pairs and the median and
+largest overlap volume. It shows how much of a collision fall comes from pulling nightstands off their bed, whose
+box the data's nightstands overlap on purpose, and which pairs the data itself puts in contact (the collision
+reward's ``contact``).
 
-    .venv/bin/python research/collision_pairs.py data=FLOORS.json prior=PRIOR.json stage1=STAGE1.json
+    .venv/bin/python research/collision_pairs.py [--room bedroom] data=FLOORS.json prior=PRIOR.json stage1=STAGE1.json
 
-Each argument is ``NAME=FILE`` (or a file, named by its stem): a neutral-JSON bedroom scene file.
+Each argument is ``NAME=FILE`` (or a file, named by its stem): a neutral-JSON scene file of the room type.
 """
 
 from __future__ import annotations
 
 import sys
-from collections import Counter
 from pathlib import Path
 
 import numpy as np
@@ -30,7 +30,8 @@ def nightstand_bed(a: str, b: str) -> bool:
 
 
 def collisions(layouts, chunk: int = 100) -> dict:
-    pairs, volumes = Counter(), []
+    pairs: dict[tuple[str, str], list[float]] = {}
+    volumes = []  # of the nightstand-bed pairs (any bed)
     colliding = ground = only_nightstand_bed = 0
     for s in range(0, len(layouts), chunk):
         part = layouts[s:s + chunk]
@@ -41,7 +42,7 @@ def collisions(layouts, chunk: int = 100) -> dict:
         colliding += int(hit.any(2).sum())
         for k, lay in enumerate(part):
             for i, j in zip(*np.nonzero(np.triu(hit[k]))):
-                pairs[tuple(sorted((lay.labels[i], lay.labels[j])))] += 1
+                pairs.setdefault(tuple(sorted((lay.labels[i], lay.labels[j]))), []).append(float(vol[k, i, j]))
                 if nightstand_bed(lay.labels[i], lay.labels[j]):
                     volumes.append(vol[k, i, j])
             for i in range(len(lay)):
@@ -52,17 +53,24 @@ def collisions(layouts, chunk: int = 100) -> dict:
 
 
 def main(args: list[str]) -> None:
+    room = "bedroom"
+    if args[:1] == ["--room"]:
+        room, args = args[1], args[2:]
     if not args:
         sys.exit(__doc__)
     for arg in args:
         name, _, path = arg.rpartition("=")
-        c = collisions(load_layouts(path, "bedroom"))
-        total = sum(c["pairs"].values())
-        top = ", ".join(f"{a}-{b} {n / total:.0%}" for (a, b), n in c["pairs"].most_common(5))
+        c = collisions(load_layouts(path, room))
+        total = sum(len(v) for v in c["pairs"].values())
+        top = sorted(c["pairs"].items(), key=lambda kv: -len(kv[1]))[:5]
+        listed = "; ".join(f"{a}-{b} {len(v) / total:.0%} (overlap m^3 median {np.median(v):.3f}, max {max(v):.3f})"
+                           for (a, b), v in top)
         v = c["volumes"]
-        print(f"{name or Path(path).stem}: Col_obj {100 * c['Col_obj']:.1f}%, of which nightstand-bed contact only "
-              f"{100 * c['only_nightstand_bed']:.1f} points; pairs: {top}; nightstand-bed overlap m^3 p50 "
-              f"{np.median(v):.3f} p90 {np.quantile(v, 0.9):.3f} max {v.max():.3f}")
+        contact = (f", of which nightstand-bed contact only {100 * c['only_nightstand_bed']:.1f} points "
+                   f"(nightstand-bed overlap m^3 p50 {np.median(v):.3f} p90 {np.quantile(v, 0.9):.3f} "
+                   f"max {v.max():.3f})"
+                   if room == "bedroom" else "")
+        print(f"{name or Path(path).stem}: Col_obj {100 * c['Col_obj']:.1f}%{contact}; pairs: {listed}")
 
 
 if __name__ == "__main__":

@@ -3,7 +3,8 @@ checker (every ground object reachable by a 0.45 m agent; a 0.75 m turning disk 
 bed) and both, the classes of the objects the agent cannot reach, and the pass rate again with every nightstand
 (then also every wardrobe) taken out of each room: an upper bound on what removing them could buy.
 
-    .venv/bin/python research/wheelchair_failures.py data=FLOORS.json stage1=STAGE1.json real=../shared/data/3dfront/bedroom_val.json
+    .venv/bin/python research/wheelchair_failures.py data=FLOORS.json stage1=STAGE1.json \
+        real=../shared/data/3dfront/bedroom_val.json
 
 Each argument is ``NAME=FILE`` (or a file, named by its stem): a neutral-JSON bedroom scene file.
 """

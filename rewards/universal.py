@@ -88,7 +88,7 @@ import torch
 from iarcs_env import geometry as geo
 from iarcs_env.geometry import single_thread
 from iarcs_env.walkable import free_space
-from iarcs_env.relations import ALL_CLASSES, CLASS_GROUPS
+from iarcs_env.relations import ALL_CLASSES, CLASS_GROUPS, class_mask
 from iarcs_env.scene import SceneBatch
 from iarcs_env.stats import DatasetStats
 
@@ -142,20 +142,15 @@ def collision_reward(batch: SceneBatch, threshold: float = geo.COLLISION_VOLUME,
 
 def _contact_pairs(batch: SceneBatch, pairs: list) -> torch.Tensor:
     """(B, N, N) bool: slots i, j whose classes form one of ``pairs`` (either order)."""
-    labels = batch.labels.clamp(min=0)
-    out = torch.zeros(labels.shape + labels.shape[-1:], dtype=torch.bool, device=labels.device)
+    out = torch.zeros(batch.labels.shape + batch.labels.shape[-1:], dtype=torch.bool, device=batch.labels.device)
     for pair in pairs:
         if len(pair) != 2:
             raise ValueError(f"collision contact: each pair names two classes or class groups, got {pair!r}")
-        sides = []
+        a, b = (class_mask(batch.labels, batch.spec.classes, [name]) & batch.mask for name in pair)  # unknown: raises
         for name in pair:
-            members = CLASS_GROUPS.get(name, (name,))
-            columns = [batch.spec.classes.index(c) for c in members if c in batch.spec.classes]
-            if not columns:
-                raise ValueError(f"collision contact: {name!r} is neither a class group "
-                                 f"({', '.join(sorted(CLASS_GROUPS))}) nor a class of {batch.spec.name} rooms")
-            sides.append(torch.isin(labels, torch.tensor(columns, device=labels.device)) & batch.mask)
-        a, b = sides
+            if not set(CLASS_GROUPS.get(name, (name,))) & set(batch.spec.classes):
+                raise ValueError(f"collision contact: {batch.spec.name} rooms have no {name!r}; name classes or "
+                                 f"groups of this room type ({', '.join(batch.spec.classes)})")
         out |= (a[:, :, None] & b[:, None, :]) | (b[:, :, None] & a[:, None, :])
     return out
 

@@ -5,13 +5,12 @@ from __future__ import annotations
 
 import json
 import socket
-import threading
 import time
-from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 from pathlib import Path
 
 import pytest
 
+from experiments.llm_replay import ReplayServer
 from rewards.agent import LLMRewardAgent, RewardSynthesisError, make_agent, parse_answer
 from rewards.llm import (LLMAuthError, LLMBadRequestError, LLMClient, LLMConfig, LLMConfigError,
                          LLMConnectionError, LLMRateLimitError, LLMServerError, LLMTimeoutError, load_litellm)
@@ -32,39 +31,20 @@ def content_of(name: str) -> str:
 # ------------------------------------------------------------------------------------- loopback server
 
 
-class FakeLLMServer:
+class FakeLLMServer(ReplayServer):
     """POST /v1/chat/completions answers from a queue of behaviours:
     ``{"fixture": name}``, ``{"content": text}``, ``{"status": 429}``, optionally with ``"sleep": seconds``."""
 
     def __init__(self):
         self.queue: list[dict] = []
         self.requests: list[dict] = []
-        server = self
+        super().__init__(answers={})
 
-        class Handler(BaseHTTPRequestHandler):
-            def do_POST(self):
-                body = json.loads(self.rfile.read(int(self.headers.get("Content-Length", 0))))
-                server.requests.append({"path": self.path, "body": body,
-                                        "auth": self.headers.get("Authorization")})
-                step = server.queue.pop(0) if server.queue else {"status": 500, "message": "no answer queued"}
-                time.sleep(step.get("sleep", 0))
-                status, payload = server.payload(step, body)
-                data = json.dumps(payload).encode()
-                try:
-                    self.send_response(status)
-                    self.send_header("Content-Type", "application/json")
-                    self.send_header("Content-Length", str(len(data)))
-                    self.end_headers()
-                    self.wfile.write(data)
-                except OSError:  # the client gave up (timeout)
-                    pass
-
-            def log_message(self, *args):
-                pass
-
-        self.httpd = ThreadingHTTPServer(("127.0.0.1", 0), Handler)
-        self.url = f"http://127.0.0.1:{self.httpd.server_address[1]}/v1"
-        threading.Thread(target=self.httpd.serve_forever, kwargs={"poll_interval": 0.05}, daemon=True).start()
+    def answer(self, body: dict, headers) -> tuple[int, dict]:
+        self.requests.append({"body": body, "auth": headers.get("Authorization")})
+        step = self.queue.pop(0) if self.queue else {"status": 500, "message": "no answer queued"}
+        time.sleep(step.get("sleep", 0))
+        return self.payload(step, body)
 
     @staticmethod
     def payload(step: dict, body: dict) -> tuple[int, dict]:
@@ -88,10 +68,6 @@ class FakeLLMServer:
     def messages(self, k: int) -> list[dict]:
         """The chat messages of the k-th request."""
         return self.requests[k]["body"]["messages"]
-
-    def close(self) -> None:
-        self.httpd.shutdown()
-        self.httpd.server_close()
 
 
 @pytest.fixture

@@ -21,7 +21,8 @@ def constraint_of(name: str) -> str:
 
 def test_answers_are_the_tasks_files_and_the_marked_reflection_not_the_failure_behaviours():
     answers = load_answers(RECORDED)
-    assert {entry["file"] for (_, reflecting), entry in answers.items() if not reflecting} == {f"{t}.json" for t in TASKS}
+    tasks = {entry["file"] for (_, reflecting), entry in answers.items() if not reflecting}
+    assert tasks == {f"{t}.json" for t in TASKS}
     assert [entry["file"] for (_, reflecting), entry in answers.items() if reflecting] == ["reflect_curriculum.json"]
 
 

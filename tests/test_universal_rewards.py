@@ -47,8 +47,10 @@ def test_collision_contact_spares_the_datas_shallow_nightstand_bed_overlap_only(
     spared = collision_reward(scenes, per_object=1.0, contact=contact)
     np.testing.assert_allclose(plain.numpy(), [-0.015 - 2, -0.075 - 2, -0.024 - 2], rtol=1e-5)
     np.testing.assert_allclose(spared.numpy(), [1.0, -0.075 - 2, -0.024 - 2], rtol=1e-5)
-    with pytest.raises(ValueError, match="'sofa_bed' is neither a class group"):
+    with pytest.raises(ValueError, match="unknown object class or group 'sofa_bed'"):
         collision_reward(scenes, contact={"pairs": [["nightstand", "sofa_bed"]], "volume": 0.04})
+    with pytest.raises(ValueError, match="bedroom rooms have no 'dining_table'"):  # a class of another room type
+        collision_reward(scenes, contact={"pairs": [["dining_table", "bed"]], "volume": 0.04})
     with pytest.raises(ValueError, match="expected .pairs"):
         collision_reward(scenes, contact={"pairs": [["nightstand", "bed"]]})
 
