@@ -27,7 +27,7 @@ from iarcs_env.schedule import ddim_previous
 
 from . import distributed
 from .callbacks import HIGHER_IS_BETTER, LOWER_IS_BETTER, as_callback, render_grid_tensor
-from .policy import DiffusionPolicy
+from .policy import FEATURE_GROUPS, DiffusionPolicy
 
 
 @dataclass
@@ -215,17 +215,23 @@ class DDPO:
         seed = None if self._env_seeded else self._seed
         self._env_seeded = True
         obs, _ = self.env.reset(seed=seed, options={"floor_indices": floor_idx})
+        # an adapter with required objects: its rooms' classes, given at every step and in the scene scored
+        classes = self.policy.required_classes([venv.floors[i] for i in floor_idx], self.generator)
+        prior = self.policy.prior
         steps, predicted = [], []  # predicted: x0_hat(x_t) of each step, scored only with x0_baseline
         on = self.device  # rollouts are stored on the CPU; the policy runs where its weights are
-        for _ in range(venv.num_steps):
+        for k in range(venv.num_steps):
             x_t = torch.from_numpy(obs["x_t"])
             t = torch.from_numpy(obs["t"])
             floor = torch.from_numpy(obs["floor"])
+            if classes is not None:
+                x_t = prior.with_classes(x_t, t.reshape(-1), classes, self.generator)
             action, log_prob, *x0_hat = (v.cpu() for v in self.policy.act(
                 x_t.to(on), t.to(on), floor.to(on), generator=self.generator, return_x0=cfg.x0_baseline))
             steps.append({"x_t": x_t, "t": t, "floor": floor, "action": action, "sample_log_prob": log_prob})
-            predicted += x0_hat
-            obs, reward, terminated, _, info = self.env.step(action.numpy())
+            predicted += [self._given(x, classes) for x in x0_hat]
+            last = k == venv.num_steps - 1
+            obs, reward, terminated, _, info = self.env.step((self._given(action, classes) if last else action).numpy())
         if not terminated.all():
             raise RuntimeError("the environment did not terminate after num_steps steps")
         td = TensorDict({k: torch.stack([s[k] for s in steps], 1) for k in steps[0]}, batch_size=[venv.num_envs, venv.num_steps])
@@ -242,6 +248,12 @@ class DDPO:
         self._last_scene = info.get("scene")
         self.num_timesteps += venv.num_envs * venv.num_steps
         return td
+
+    def _given(self, x: torch.Tensor, classes: torch.Tensor | None) -> torch.Tensor:
+        """Clean scene features ``x`` with the rooms' given classes (as they are without)."""
+        if classes is None:
+            return x
+        return torch.cat([x[..., :FEATURE_GROUPS["class"].start], self.policy.prior.class_features(classes, x)], -1)
 
     def compute_advantages(self, rewards: torch.Tensor, floor_index: torch.Tensor,
                            terms: torch.Tensor | None = None, x0_values: torch.Tensor | None = None,

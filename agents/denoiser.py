@@ -476,14 +476,28 @@ class ScenePrior:
         return guided_model_fn(lambda x, t, c: call(x, t, floor_context=c), ctx, guidance_scale, unc)
 
     # --- sampling ---------------------------------------------------------------------------------------
+    def class_features(self, classes: torch.Tensor, like: torch.Tensor) -> torch.Tensor:
+        """The class part (B, N, K) of clean features: the one-hot of ``classes`` (B, N) mapped to +-1."""
+        return 2 * F.one_hot(classes.to(like.device), self.spec.num_classes).to(like.dtype) - 1
+
+    def with_classes(self, x_t: torch.Tensor, t: torch.Tensor, classes: torch.Tensor,
+                     generator: torch.Generator | None = None) -> torch.Tensor:
+        """x_t with its class part given by ``classes`` (B, N) class indices (``empty_index``: an empty slot): their
+        one-hot (+-1) as it is for a prior trained with ``PretrainConfig.classes_given``, else noised to t,
+        q(x_t | classes) with fresh noise (RePaint's rule for a known part), so the network sees what it was trained
+        on and samples the geometry of those classes (``iarcs_env.required_objects``)."""
+        given = self.class_features(classes, x_t)
+        if not self.meta.get("classes_given"):
+            given = self.schedule.q_sample(given, t, standard_normal(given.shape, generator, x_t.device, x_t.dtype))
+        return torch.cat([x_t[..., :GEOMETRY_DIM], given], -1)
+
     @torch.no_grad()
     def sample_features(self, floors: Sequence[FloorPlan], num_steps: int = 20, eta: float = 1.0,
                         generator: torch.Generator | None = None, guidance_scale: float = 1.0,
                         return_trajectory: bool = False, eps_fn=None, classes: torch.Tensor | None = None):
         """DDIM rollout; returns x_0 (B, N, 8+K) (and the trajectory, see NoiseSchedule.sample). ``classes``
-        (B, N) class indices (``empty_index``: an empty slot), for a prior trained with
-        ``PretrainConfig.classes_given``: the network sees their clean one-hot as the class part of x_t at every
-        step, and x_0 has them (not with ``return_trajectory``)."""
+        (B, N) class indices: the network sees them as the class part of x_t at every step
+        (:meth:`with_classes`), and x_0 has them (not with ``return_trajectory``)."""
         was_training = self.denoiser.training
         self.denoiser.eval()
         try:
@@ -496,10 +510,9 @@ class ScenePrior:
                                             return_trajectory=return_trajectory)
             if return_trajectory:
                 raise ValueError("sampling with given classes returns no trajectory")
-            given = 2 * F.one_hot(classes.to(self.device), self.spec.num_classes).float() - 1
-            x0 = self.schedule.sample(lambda x, t: fn(torch.cat([x[..., :GEOMETRY_DIM], given], -1), t), shape,
+            x0 = self.schedule.sample(lambda x, t: fn(self.with_classes(x, t, classes, generator), t), shape,
                                       num_steps=num_steps, eta=eta, generator=generator, x_T=x_T)
-            return torch.cat([x0[..., :GEOMETRY_DIM], given], -1)
+            return torch.cat([x0[..., :GEOMETRY_DIM], self.class_features(classes, x0)], -1)
         finally:
             self.denoiser.train(was_training)
 

@@ -32,6 +32,7 @@ from peft import LoraConfig, PeftModel, get_peft_model
 from torch import nn
 
 from iarcs_env.floorplan import FloorPlan
+from iarcs_env.required_objects import RequiredObject, with_required
 from iarcs_env.scene import SceneBatch
 from iarcs_env.schedule import ddim_previous, gaussian_log_prob, standard_normal
 
@@ -102,6 +103,8 @@ class DiffusionPolicy(nn.Module):
         self.adapted: dict[str, tuple[str, ...]] = {adapter: check_feature_groups(adapted)}
         self.references: dict[str, str | None] = {adapter: None}
         """adapter -> the adapter its non-adapted features follow (None: the prior)."""
+        self.required: dict[str, tuple[RequiredObject, ...]] = {adapter: ()}
+        """adapter -> the objects its task needs in every room (:mod:`iarcs_env.required_objects`)."""
         self._adapters_off = False
 
     # --- adapters ---------------------------------------------------------------------------------------
@@ -109,12 +112,17 @@ class DiffusionPolicy(nn.Module):
     def adapter(self) -> str:
         return self.model.active_adapter
 
-    def add_adapter(self, name: str, init_from: str | None = None, adapted=()) -> None:
+    def add_adapter(self, name: str, init_from: str | None = None, adapted=(), required=()) -> None:
         """A new adapter (zero-initialised B, so the policy starts as the prior), or a copy of ``init_from``.
         ``adapted``: its feature groups (empty: those of ``init_from``, or all). The features it does not
-        adapt follow ``init_from`` (kept frozen, and saved with it), or the prior."""
+        adapt follow ``init_from`` (kept frozen, and saved with it), or the prior. ``required``: the
+        :class:`RequiredObject` s of its task (its rooms' classes are then given: it must not adapt ``class``)."""
         self.model.add_adapter(name, self.lora_config)
         self.adapted[name] = check_feature_groups(adapted or (self.adapted[init_from] if init_from else ()))
+        if required and "class" in self.adapted[name]:
+            raise ValueError("an adapter with required objects samples its rooms' classes given, so it cannot adapt "
+                             "them: leave class out of adapt")
+        self.required[name] = tuple(required)
         self.references[name] = init_from if len(self.adapted[name]) < len(FEATURE_GROUPS) else None
         if init_from is not None:
             src = {k: v for k, v in self.model.state_dict().items() if f".{init_from}." in k}
@@ -134,7 +142,8 @@ class DiffusionPolicy(nn.Module):
         reference = self.references.get(name)
         if reference is not None:
             reference = self.save_adapter(path / REFERENCE_DIR, reference).name
-        (path / ADAPTED_FILE).write_text(json.dumps({"adapted": list(self.adapted[name]), "reference": reference}))
+        (path / ADAPTED_FILE).write_text(json.dumps({"adapted": list(self.adapted[name]), "reference": reference,
+                                                     "required_objects": [r.to_dict() for r in self.required[name]]}))
         return path
 
     def load_adapter(self, folder: str | Path, name: str | None = None) -> str:
@@ -152,6 +161,8 @@ class DiffusionPolicy(nn.Module):
         self.model.load_adapter(str(folder), adapter_name=name, is_trainable=True)
         self.adapted[name] = check_feature_groups(meta.get("adapted", ()))
         self.references[name] = reference
+        self.required[name] = tuple(RequiredObject.from_dict(r, self.prior.spec.classes, f"{folder / ADAPTED_FILE}")
+                                    for r in meta.get("required_objects", ()))
         self.set_adapter(name)
         return name
 
@@ -270,11 +281,29 @@ class DiffusionPolicy(nn.Module):
         return (x_prev, log_prob, out.pred_original_sample) if return_x0 else (x_prev, log_prob)
 
     @torch.no_grad()
+    def required_classes(self, floors: Sequence[FloorPlan], generator: torch.Generator | None = None,
+                         batch_size: int | None = None) -> torch.Tensor | None:
+        """(B, N) class indices of rooms for ``floors`` that hold the active adapter's required objects: sampled by
+        its reference (stage 1), the missing objects added (:func:`iarcs_env.required_objects.with_required`); None
+        for an adapter without required objects."""
+        required = self.required.get(self.adapter)
+        if not required:
+            return None
+        with self.reference_policy():
+            first = self.prior.sample(floors, self.num_steps, self.eta, generator, batch_size=batch_size,
+                                      eps_fn=self.eps)
+        return with_required(first.labels, self.prior.spec.classes, required)
+
+    @torch.no_grad()
     def sample(self, floors: Sequence[FloorPlan], generator: torch.Generator | None = None,
-               batch_size: int = 64) -> SceneBatch:
-        """Scenes for the given floor plans with the active adapter (a whole DDIM rollout)."""
-        return self.prior.sample(floors, num_steps=self.num_steps, eta=self.eta, generator=generator,
-                                 batch_size=batch_size, eps_fn=self.eps)
+               batch_size: int = 64, **kwargs) -> SceneBatch:
+        """Scenes for the given floor plans with the active adapter (a whole DDIM rollout; with required objects,
+        a stage-1 rollout first for the rooms' classes). ``kwargs``: more of :meth:`ScenePrior.sample`'s
+        arguments (``guidance_scale``, ``ids``, ``num_steps`` and ``eta``: default the policy's)."""
+        kwargs = {"num_steps": self.num_steps, "eta": self.eta, **kwargs}
+        classes = self.required_classes(floors, generator, batch_size)
+        return self.prior.sample(floors, generator=generator, batch_size=batch_size, eps_fn=self.eps, classes=classes,
+                                 **kwargs)
 
     def actor(self):
         """A TorchRL ``ProbabilisticActor`` view: reads ``x_t``, ``t``, ``floor``; writes ``action`` and its

@@ -44,6 +44,11 @@ class TrainConfig:
     yaw, class; translation = position and elevation, size = footprint and height); the others follow
     ``init_adapter`` (the prior without one). Empty: all of them, or with ``init_adapter`` the same as that
     adapter. ``[elevation, height]`` lowers or raises objects but keeps which objects a room has and where."""
+    required_objects: list = field(default_factory=list)
+    """Objects the task needs in every room (stage 2, with ``init_adapter``; iarcs_env.required_objects), e.g.
+    ``[{classes: bed, add: double_bed}, {classes: nightstand, at_least: 2}]``: each room is sampled by
+    ``init_adapter`` first, the objects it lacks are added to its class list, and the adapter samples the room again
+    with those classes given (it must not adapt ``class``). Saved with the adapter, so its samples hold them too."""
     algorithm: str = "ddpo"
     """ddpo (= ddpo-is), ddpo-sf or physics-gradient (agents/physics_gradient.py)."""
     num_envs: int = 32
@@ -106,6 +111,19 @@ class TrainConfig:
                 raise ValueError(f"{name} must be a positive whole number, got {value!r}")
         if not isinstance(self.eta, (int, float)) or not 0 <= self.eta <= 1:
             raise ValueError(f"eta must be a number in [0, 1] (0: deterministic DDIM, 1: DDPM-like), got {self.eta!r}")
+        if self.required_objects and not self.init_adapter:
+            raise ValueError("required_objects needs init_adapter: the adapter (stage 1) that samples each room first")
+        self.required()  # checked here, so a bad entry fails when the config is read
+
+    def required(self) -> list:
+        """``required_objects`` as :class:`iarcs_env.required_objects.RequiredObject` s of the room's classes."""
+        from iarcs_env.required_objects import RequiredObject
+        from iarcs_env.rooms import get_room
+
+        if not isinstance(self.required_objects, list):
+            raise ValueError(f"required_objects must be a list of mappings, got {self.required_objects!r}")
+        classes = get_room(self.room).classes
+        return [RequiredObject.from_dict(r, classes, f"required_objects[{i}]") for i, r in enumerate(self.required_objects)]
 
 
 def load_train_config(path, **overrides) -> TrainConfig:
@@ -150,7 +168,7 @@ def build(cfg: TrainConfig, tensorboard_log: Path | None = None, task_reward=Non
     if cfg.init_adapter:  # the trained adapter starts as a copy of init_adapter
         path = stage1_adapter_path(cfg.room) if cfg.init_adapter == "default" else cfg.init_adapter
         src = policy.load_adapter(path, name="init")
-        policy.add_adapter(cfg.adapter, init_from=src, adapted=cfg.adapt)
+        policy.add_adapter(cfg.adapter, init_from=src, adapted=cfg.adapt, required=cfg.required())
         policy.model.delete_adapter("scratch")
     policy.to(distributed.setup(cfg.device))  # before the optimiser is made over its parameters
     if task_reward is None:

@@ -203,9 +203,10 @@ def cmd_sample(args) -> int:
 
     def draw(indices: list[int]):
         """One scene for each of these floor plans (centred on the floor's bounding box, as the prior works)."""
-        return prior.sample([floors[i] for i in indices], num_steps=args.steps, eta=args.eta, generator=gen,
-                            guidance_scale=args.guidance, batch_size=args.batch_size, ids=[ids[i] for i in indices],
-                            eps_fn=policy.eps if policy else None).to_layouts()
+        sampler = policy or prior  # an adapter's policy also gives its task's required objects
+        return sampler.sample([floors[i] for i in indices], num_steps=args.steps, eta=args.eta, generator=gen,
+                              guidance_scale=args.guidance, batch_size=args.batch_size,
+                              ids=[ids[i] for i in indices]).to_layouts()
 
     meta = {"source": "iarcs sample", "room_type": spec.name, "checkpoint": str(checkpoint or
             ScenePrior.default_path(spec.name).name), "seed": args.seed, "ddim_steps": args.steps,
