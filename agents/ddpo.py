@@ -23,7 +23,7 @@ import torch
 from tensordict import TensorDict
 
 from iarcs_env.env import evaluate_reward
-from iarcs_env.schedule import ddim_previous
+from iarcs_env.schedule import ddim_previous, standard_normal
 
 from . import distributed
 from .callbacks import HIGHER_IS_BETTER, LOWER_IS_BETTER, as_callback, render_grid_tensor
@@ -215,9 +215,13 @@ class DDPO:
         seed = None if self._env_seeded else self._seed
         self._env_seeded = True
         obs, _ = self.env.reset(seed=seed, options={"floor_indices": floor_idx})
-        # an adapter with required objects: its rooms' classes, given at every step and in the scene scored
-        classes = self.policy.required_classes([venv.floors[i] for i in floor_idx], self.generator)
+        # an adapter with required objects: its rooms' classes, one list per floor plan (so that the advantages
+        # within a floor's group compare arrangements of the same objects), given at every step and in the scene scored
+        classes = self.policy.required_classes([venv.floors[i] for i in picked], self.generator)
         prior = self.policy.prior
+        if classes is not None:
+            classes = classes.repeat_interleave(cfg.samples_per_floor, 0)
+            class_noise = standard_normal((*classes.shape, prior.spec.num_classes), self.generator)
         steps, predicted = [], []  # predicted: x0_hat(x_t) of each step, scored only with x0_baseline
         on = self.device  # rollouts are stored on the CPU; the policy runs where its weights are
         for k in range(venv.num_steps):
@@ -225,7 +229,7 @@ class DDPO:
             t = torch.from_numpy(obs["t"])
             floor = torch.from_numpy(obs["floor"])
             if classes is not None:
-                x_t = prior.with_classes(x_t, t.reshape(-1), classes, self.generator)
+                x_t = prior.with_classes(x_t, t.reshape(-1), classes, class_noise)
             action, log_prob, *x0_hat = (v.cpu() for v in self.policy.act(
                 x_t.to(on), t.to(on), floor.to(on), generator=self.generator, return_x0=cfg.x0_baseline))
             steps.append({"x_t": x_t, "t": t, "floor": floor, "action": action, "sample_log_prob": log_prob})

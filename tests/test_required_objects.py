@@ -61,7 +61,7 @@ def test_given_classes_are_what_the_network_sees_noised_to_t_and_what_the_scenes
     classes = with_required(torch.full((64, 12), EMPTY), CLASSES, NEEDS)
     x = torch.zeros(64, 12, prior.spec.feature_dim)
     for t in (999, 500, 100, 0):  # q(x_t | classes) = N(sqrt(a_t) c, (1 - a_t) I) with c the +-1 one-hot
-        given = prior.with_classes(x, torch.full((64,), t), classes, torch.Generator().manual_seed(0))
+        given = prior.with_classes(x, torch.full((64,), t), classes, torch.randn(64, 12, prior.spec.num_classes))
         assert torch.equal(given[..., :8], x[..., :8])
         a = float(prior.schedule.alphas_cumprod[t])
         residual = given[..., 8:] - a ** 0.5 * prior.class_features(classes, x)
@@ -112,8 +112,11 @@ def test_rollouts_give_the_classes_and_their_log_probs_are_the_policys(tmp_path)
     policy = required_policy()
     model = DDPO(policy, make_env(num_envs=32), verbose=0, samples_per_floor=4, seed=0)
     td = model.collect_rollouts()
-    ok, holding = hold_needs_or_are_full(model._last_scene.labels)
+    labels = model._last_scene.labels
+    ok, holding = hold_needs_or_are_full(labels)
     assert ok and holding >= 3
+    groups = labels.reshape(8, 4, -1)  # one class list per floor plan: a group's advantages compare arrangements
+    assert (groups == groups[:, :1]).all() and not (groups == groups[:1, :1]).all()
     flat = td.reshape(-1)
     again = policy.log_prob(flat["x_t"], flat["t"].reshape(-1), flat["floor"], flat["action"])
     assert torch.allclose(again, flat["sample_log_prob"], atol=1e-5)  # the ratio starts at 1
