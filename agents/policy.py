@@ -16,7 +16,8 @@ reference predicts (from x0_hat) to be ``empty`` keeps the reference's eps on ev
 is class ``empty`` *and* geometry 0, so without this rule an adapter of translation and yaw alone still
 removes objects by pulling their geometry to 0 (a stage-1 run did: 3.7 -> 3.3 objects per room) or could
 fill empty slots. So an adapter of ``("position", "yaw")`` moves and turns objects on the floor but does not
-add, remove, resize, lift or sink them. The reference is saved inside the adapter's folder (``reference/``),
+add, remove, resize, lift or sink them. An adapter with required objects (:mod:`iarcs_env.required_objects`)
+samples its rooms with their classes given, so no slot can change; the rule is off for it. The reference is saved inside the adapter's folder (``reference/``),
 so a saved adapter samples the same wherever it is loaded.
 """
 
@@ -237,7 +238,9 @@ class DiffusionPolicy(nn.Module):
             else:
                 base = self.eps(x_t, t, floor=floor, floor_context=floor_context, adapter=reference)
         keep = keep.to(eps.device).expand_as(eps)
-        if "class" not in self.adapted[name]:  # slots the reference leaves empty stay the reference's
+        if "class" not in self.adapted[name] and not self.required.get(name):
+            # slots the reference leaves empty stay the reference's (with required objects the classes are given:
+            # no slot can be emptied or filled, and the reference doubts the very objects that were added)
             classes = self.schedule.predict_x0(x_t, t, base)[..., FEATURE_GROUPS["class"]]
             keep = keep | (classes.argmax(-1) == classes.shape[-1] - 1)[..., None]
         return torch.where(keep, base, eps)
