@@ -23,7 +23,7 @@ import torch
 from tensordict import TensorDict
 
 from iarcs_env.env import evaluate_reward
-from iarcs_env.schedule import ddim_previous, standard_normal
+from iarcs_env.schedule import ddim_previous
 
 from . import distributed
 from .callbacks import HIGHER_IS_BETTER, LOWER_IS_BETTER, as_callback, render_grid_tensor
@@ -221,7 +221,6 @@ class DDPO:
         prior = self.policy.prior
         if classes is not None:
             classes = classes.repeat_interleave(cfg.samples_per_floor, 0)
-            class_noise = standard_normal((*classes.shape, prior.spec.num_classes), self.generator)
         steps, predicted = [], []  # predicted: x0_hat(x_t) of each step, scored only with x0_baseline
         on = self.device  # rollouts are stored on the CPU; the policy runs where its weights are
         for k in range(venv.num_steps):
@@ -229,7 +228,7 @@ class DDPO:
             t = torch.from_numpy(obs["t"])
             floor = torch.from_numpy(obs["floor"])
             if classes is not None:
-                x_t = prior.with_classes(x_t, t.reshape(-1), classes, class_noise)
+                x_t = prior.with_classes(x_t, t.reshape(-1), classes, self.generator)
             action, log_prob, *x0_hat = (v.cpu() for v in self.policy.act(
                 x_t.to(on), t.to(on), floor.to(on), generator=self.generator, return_x0=cfg.x0_baseline))
             steps.append({"x_t": x_t, "t": t, "floor": floor, "action": action, "sample_log_prob": log_prob})

@@ -480,15 +480,16 @@ class ScenePrior:
         """The class part (B, N, K) of clean features: the one-hot of ``classes`` (B, N) mapped to +-1."""
         return 2 * F.one_hot(classes.to(like.device), self.spec.num_classes).to(like.dtype) - 1
 
-    def with_classes(self, x_t: torch.Tensor, t: torch.Tensor, classes: torch.Tensor, noise: torch.Tensor) -> torch.Tensor:
+    def with_classes(self, x_t: torch.Tensor, t: torch.Tensor, classes: torch.Tensor,
+                     generator: torch.Generator | None = None) -> torch.Tensor:
         """x_t with its class part given by ``classes`` (B, N) class indices (``empty_index``: an empty slot): their
-        one-hot (+-1) as it is for a prior trained with ``PretrainConfig.classes_given``, else noised to t with
-        ``noise`` (B, N, K), q(x_t | classes), one noise for a whole chain (so the class part moves smoothly from
-        noise to the classes, as in training), and the network samples the geometry of those classes
+        one-hot (+-1) as it is for a prior trained with ``PretrainConfig.classes_given``, else noised to t,
+        q(x_t | classes) with fresh noise at every call (RePaint's rule for the known part of an image), so the
+        network sees what it was trained on and samples the geometry of those classes
         (``iarcs_env.required_objects``)."""
         given = self.class_features(classes, x_t)
         if not self.meta.get("classes_given"):
-            given = self.schedule.q_sample(given, t, noise.to(x_t))
+            given = self.schedule.q_sample(given, t, standard_normal(given.shape, generator, x_t.device, x_t.dtype))
         return torch.cat([x_t[..., :GEOMETRY_DIM], given], -1)
 
     @torch.no_grad()
@@ -510,8 +511,7 @@ class ScenePrior:
                                             return_trajectory=return_trajectory)
             if return_trajectory:
                 raise ValueError("sampling with given classes returns no trajectory")
-            noise = standard_normal((*classes.shape, self.spec.num_classes), generator, self.device)
-            x0 = self.schedule.sample(lambda x, t: fn(self.with_classes(x, t, classes, noise), t), shape,
+            x0 = self.schedule.sample(lambda x, t: fn(self.with_classes(x, t, classes, generator), t), shape,
                                       num_steps=num_steps, eta=eta, generator=generator, x_T=x_T)
             return torch.cat([x0[..., :GEOMETRY_DIM], self.class_features(classes, x0)], -1)
         finally:
