@@ -6,8 +6,8 @@ rates), and RL does not add what the prior rarely samples: a task adapter that t
 furniture instead (docs/results/stage2_tasks.md). So a task may name its objects: a room is first sampled as stage 1
 would, the objects it lacks are added to its class list, and the room is sampled again with that class list given
 (only the geometry of every object is sampled; :meth:`agents.denoiser.ScenePrior.with_classes`). The task adapter
-then learns where they stand. Nothing is added to a room that already has them, so the class frequencies move only
-by what the task needs.
+may then only move, turn or resize objects. Nothing is added to a room that already has them, so the class
+frequencies move only by what the task needs.
 """
 
 from __future__ import annotations
