@@ -113,6 +113,9 @@ class TrainConfig:
             raise ValueError(f"eta must be a number in [0, 1] (0: deterministic DDIM, 1: DDPM-like), got {self.eta!r}")
         if self.required_objects and not self.init_adapter:
             raise ValueError("required_objects needs init_adapter: the adapter (stage 1) that samples each room first")
+        if self.required_objects and "class" in self.adapt:
+            raise ValueError("required_objects gives the rooms' classes, so adapt cannot hold class: use e.g. "
+                             "adapt: [translation, size, yaw]")
         self.required()  # checked here, so a bad entry fails when the config is read
 
     def required(self) -> list:

@@ -134,5 +134,7 @@ def test_a_config_checks_its_required_objects_when_read():
     assert TrainConfig(init_adapter="default", required_objects=entry).required() == [NEEDS[1]]
     with pytest.raises(ValueError, match="needs init_adapter"):
         TrainConfig(required_objects=entry)
+    with pytest.raises(ValueError, match="adapt cannot hold class"):
+        TrainConfig(init_adapter="default", required_objects=entry, adapt=["position", "class"])
     with pytest.raises(ValueError, match=r"required_objects\[0\]: dining_table names no object class of this room"):
         TrainConfig(init_adapter="default", required_objects=[{"classes": "dining_table"}])
