@@ -27,7 +27,7 @@ from iarcs_env.schedule import ddim_previous
 
 from . import distributed
 from .callbacks import HIGHER_IS_BETTER, LOWER_IS_BETTER, as_callback, render_grid_tensor
-from .policy import FEATURE_GROUPS, DiffusionPolicy
+from .policy import DiffusionPolicy
 
 
 @dataclass
@@ -256,7 +256,7 @@ class DDPO:
         """Clean scene features ``x`` with the rooms' given classes (as they are without)."""
         if classes is None:
             return x
-        return torch.cat([x[..., :FEATURE_GROUPS["class"].start], self.policy.prior.class_features(classes, x)], -1)
+        return self.policy.prior.with_clean_classes(x, classes)
 
     def compute_advantages(self, rewards: torch.Tensor, floor_index: torch.Tensor,
                            terms: torch.Tensor | None = None, x0_values: torch.Tensor | None = None,

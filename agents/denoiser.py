@@ -480,6 +480,10 @@ class ScenePrior:
         """The class part (B, N, K) of clean features: the one-hot of ``classes`` (B, N) mapped to +-1."""
         return 2 * F.one_hot(classes.to(like.device), self.spec.num_classes).to(like.dtype) - 1
 
+    def with_clean_classes(self, x: torch.Tensor, classes: torch.Tensor) -> torch.Tensor:
+        """Features ``x`` with their class part the clean one-hot (+-1) of ``classes`` (B, N)."""
+        return torch.cat([x[..., :GEOMETRY_DIM], self.class_features(classes, x)], -1)
+
     def with_classes(self, x_t: torch.Tensor, t: torch.Tensor, classes: torch.Tensor,
                      generator: torch.Generator | None = None) -> torch.Tensor:
         """x_t with its class part given by ``classes`` (B, N) class indices (``empty_index``: an empty slot): their
@@ -487,9 +491,10 @@ class ScenePrior:
         q(x_t | classes) with fresh noise at every call (RePaint's rule for the known part of an image), so the
         network sees what it was trained on and samples the geometry of those classes
         (``iarcs_env.required_objects``)."""
+        if self.meta.get("classes_given"):
+            return self.with_clean_classes(x_t, classes)
         given = self.class_features(classes, x_t)
-        if not self.meta.get("classes_given"):
-            given = self.schedule.q_sample(given, t, standard_normal(given.shape, generator, x_t.device, x_t.dtype))
+        given = self.schedule.q_sample(given, t, standard_normal(given.shape, generator, x_t.device, x_t.dtype))
         return torch.cat([x_t[..., :GEOMETRY_DIM], given], -1)
 
     @torch.no_grad()
@@ -513,7 +518,7 @@ class ScenePrior:
                 raise ValueError("sampling with given classes returns no trajectory")
             x0 = self.schedule.sample(lambda x, t: fn(self.with_classes(x, t, classes, generator), t), shape,
                                       num_steps=num_steps, eta=eta, generator=generator, x_T=x_T)
-            return torch.cat([x0[..., :GEOMETRY_DIM], self.class_features(classes, x0)], -1)
+            return self.with_clean_classes(x0, classes)
         finally:
             self.denoiser.train(was_training)
 

@@ -285,16 +285,17 @@ class DiffusionPolicy(nn.Module):
 
     @torch.no_grad()
     def required_classes(self, floors: Sequence[FloorPlan], generator: torch.Generator | None = None,
-                         batch_size: int | None = None) -> torch.Tensor | None:
+                         batch_size: int | None = None, num_steps: int | None = None,
+                         eta: float | None = None) -> torch.Tensor | None:
         """(B, N) class indices of rooms for ``floors`` that hold the active adapter's required objects: sampled by
-        its reference (stage 1), the missing objects added (:func:`iarcs_env.required_objects.with_required`); None
-        for an adapter without required objects."""
+        its reference (stage 1; DDIM steps and eta default to the policy's), the missing objects added
+        (:func:`iarcs_env.required_objects.with_required`); None for an adapter without required objects."""
         required = self.required.get(self.adapter)
         if not required:
             return None
         with self.reference_policy():
-            first = self.prior.sample(floors, self.num_steps, self.eta, generator, batch_size=batch_size,
-                                      eps_fn=self.eps)
+            first = self.prior.sample(floors, num_steps or self.num_steps, self.eta if eta is None else eta, generator,
+                                      batch_size=batch_size, eps_fn=self.eps)
         return with_required(first.labels, self.prior.spec.classes, required)
 
     @torch.no_grad()
@@ -304,7 +305,7 @@ class DiffusionPolicy(nn.Module):
         a stage-1 rollout first for the rooms' classes). ``kwargs``: more of :meth:`ScenePrior.sample`'s
         arguments (``guidance_scale``, ``ids``, ``num_steps`` and ``eta``: default the policy's)."""
         kwargs = {"num_steps": self.num_steps, "eta": self.eta, **kwargs}
-        classes = self.required_classes(floors, generator, batch_size)
+        classes = self.required_classes(floors, generator, batch_size, kwargs["num_steps"], kwargs["eta"])
         return self.prior.sample(floors, generator=generator, batch_size=batch_size, eps_fn=self.eps, classes=classes,
                                  **kwargs)
 

@@ -60,13 +60,12 @@ class RequiredObject:
 
 
 def with_required(labels: torch.Tensor, vocabulary: Sequence[str], required: Sequence[RequiredObject]) -> torch.Tensor:
-    """(B, N) class indices (``len(vocabulary)`` and above: an empty slot) with the missing required objects put into
+    """(B, N) class indices (``len(vocabulary)``: an empty slot) with the missing required objects put into
     empty slots, in the canonical slot order (sorted by class index, empty slots last). A room with no empty slot
     left keeps what it has."""
     vocabulary = list(vocabulary)
     empty = len(vocabulary)
     out = labels.clone()
-    out[out > empty] = empty
     for req in required:
         have = class_mask(out, vocabulary, req.classes).sum(1)
         for b in torch.nonzero(have < req.at_least).flatten().tolist():

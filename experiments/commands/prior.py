@@ -203,7 +203,7 @@ def cmd_sample(args) -> int:
 
     def draw(indices: list[int]):
         """One scene for each of these floor plans (centred on the floor's bounding box, as the prior works)."""
-        sampler = policy or prior  # an adapter's policy also gives its task's required objects
+        sampler = prior if policy is None else policy  # an adapter's policy also gives its task's required objects
         return sampler.sample([floors[i] for i in indices], num_steps=args.steps, eta=args.eta, generator=gen,
                               guidance_scale=args.guidance, batch_size=args.batch_size,
                               ids=[ids[i] for i in indices]).to_layouts()
