@@ -230,8 +230,10 @@ class DDPO:
             if classes is not None:
                 x_t = prior.with_classes(x_t, t.reshape(-1), classes, self.generator)
             action, log_prob, *x0_hat = (v.cpu() for v in self.policy.act(
-                x_t.to(on), t.to(on), floor.to(on), generator=self.generator, return_x0=cfg.x0_baseline))
-            steps.append({"x_t": x_t, "t": t, "floor": floor, "action": action, "sample_log_prob": log_prob})
+                x_t.to(on), t.to(on), floor.to(on), generator=self.generator, return_x0=cfg.x0_baseline,
+                classes=None if classes is None else classes.to(on)))
+            steps.append({"x_t": x_t, "t": t, "floor": floor, "action": action, "sample_log_prob": log_prob}
+                         | ({} if classes is None else {"classes": classes}))
             predicted += [self._given(x, classes) for x in x0_hat]
             last = k == venv.num_steps - 1
             obs, reward, terminated, _, info = self.env.step((self._given(action, classes) if last else action).numpy())
@@ -597,7 +599,8 @@ class DDPOSF(DDPO):
     name = "DDPO-SF"
 
     def policy_loss(self, batch: TensorDict) -> tuple[torch.Tensor, dict[str, float]]:
-        log_prob = self.policy.log_prob(batch["x_t"], batch["t"], batch["floor"], batch["action"])
+        log_prob = self.policy.log_prob(batch["x_t"], batch["t"], batch["floor"], batch["action"],
+                                        batch.get("classes", None))
         adv = batch["advantage"].reshape(-1)
         loss = -(adv * log_prob).mean()
         approx_kl = float((batch["sample_log_prob"] - log_prob.detach()).mean())

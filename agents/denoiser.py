@@ -41,6 +41,7 @@ are gone; a saved config may still name them with the values of this design, any
 
 from __future__ import annotations
 
+import functools
 import math
 import os
 from dataclasses import asdict, dataclass, fields, replace
@@ -516,6 +517,9 @@ class ScenePrior:
                                             return_trajectory=return_trajectory)
             if return_trajectory:
                 raise ValueError("sampling with given classes returns no trajectory")
+            if eps_fn is not None:  # a policy's: its slots given empty follow its reference
+                given = classes.to(self.device).repeat(1 if guidance_scale == 1.0 else 2, 1)  # guidance: cond + uncond
+                fn = self.model_fn(cond, guidance_scale, functools.partial(eps_fn, classes=given))
             x0 = self.schedule.sample(lambda x, t: fn(self.with_classes(x, t, classes, generator), t), shape,
                                       num_steps=num_steps, eta=eta, generator=generator, x_T=x_T)
             return self.with_clean_classes(x0, classes)

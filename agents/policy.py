@@ -17,7 +17,7 @@ is class ``empty`` *and* geometry 0, so without this rule an adapter of translat
 removes objects by pulling their geometry to 0 (a stage-1 run did: 3.7 -> 3.3 objects per room) or could
 fill empty slots. So an adapter of ``("position", "yaw")`` moves and turns objects on the floor but does not
 add, remove, resize, lift or sink them. An adapter with required objects (:mod:`iarcs_env.required_objects`)
-samples its rooms with their classes given, so no slot can change; the rule is off for it. The reference is
+samples its rooms with their classes given, so no slot can change: its slots given empty follow the reference. The reference is
 saved inside the adapter's folder (``reference/``), so a saved adapter samples the same wherever it is loaded.
 """
 
@@ -221,9 +221,11 @@ class DiffusionPolicy(nn.Module):
             self.set_adapter(active)
 
     def eps(self, x_t: torch.Tensor, t: torch.Tensor, floor: torch.Tensor | None = None,
-            floor_context: torch.Tensor | None = None, adapter: str | None = None) -> torch.Tensor:
+            floor_context: torch.Tensor | None = None, adapter: str | None = None,
+            classes: torch.Tensor | None = None) -> torch.Tensor:
         """eps_theta(x_t, t, floor) of an adapter (default: the active one), with its reference's eps on the
-        features it does not adapt (the prior's inside :meth:`base_policy`)."""
+        features it does not adapt (the prior's inside :meth:`base_policy`). ``classes``: the rooms' given
+        classes (B, N) of an adapter with required objects; its slots given empty follow the reference."""
         name = adapter or self.adapter
         with self._using(name):
             eps = self.model(x_t, t, floor=floor, floor_context=floor_context)
@@ -238,24 +240,28 @@ class DiffusionPolicy(nn.Module):
             else:
                 base = self.eps(x_t, t, floor=floor, floor_context=floor_context, adapter=reference)
         keep = keep.to(eps.device).expand_as(eps)
-        if "class" not in self.adapted[name] and not self.required.get(name):
-            # slots the reference leaves empty stay the reference's (with required objects the classes are given:
-            # no slot can be emptied or filled, and the reference doubts the very objects that were added)
-            classes = self.schedule.predict_x0(x_t, t, base)[..., FEATURE_GROUPS["class"]]
-            keep = keep | (classes.argmax(-1) == classes.shape[-1] - 1)[..., None]
+        if classes is not None:
+            # slots given empty stay the reference's: their geometry is never scored, so adapting it is noise
+            keep = keep | (classes == self.prior.spec.empty_index).to(keep.device)[..., None]
+        elif "class" not in self.adapted[name] and not self.required.get(name):
+            # slots the reference leaves empty stay the reference's
+            predicted = self.schedule.predict_x0(x_t, t, base)[..., FEATURE_GROUPS["class"]]
+            keep = keep | (predicted.argmax(-1) == predicted.shape[-1] - 1)[..., None]
         return torch.where(keep, base, eps)
 
-    def forward(self, x_t: torch.Tensor, t: torch.Tensor, floor: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    def forward(self, x_t: torch.Tensor, t: torch.Tensor, floor: torch.Tensor,
+                classes: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
         """mu_theta and sigma_t of pi(x_{t-1} | x_t, t, floor); shapes (B, N, F) (sigma broadcast)."""
-        out = self._step(x_t, t, floor)
+        out = self._step(x_t, t, floor, classes)
         return out.mean, out.std.expand_as(x_t)
 
-    def _step(self, x_t, t, floor):
-        """The DDIM step's Gaussian and x0_hat (a ``DDIMStepOutput`` whose sample is not drawn)."""
+    def _step(self, x_t, t, floor, classes=None):
+        """The DDIM step's Gaussian and x0_hat (a ``DDIMStepOutput`` whose sample is not drawn); ``classes``: see
+        :meth:`eps`."""
         t = torch.as_tensor(t, device=x_t.device).long().reshape(-1)
         if t.numel() == 1:
             t = t.expand(x_t.shape[0])
-        eps = self.eps(x_t, t, floor)
+        eps = self.eps(x_t, t, floor, classes=classes)
         t_prev = ddim_previous(t, self.num_steps, self.schedule.num_train_timesteps)
         # passing prev_sample makes step() compute the Gaussian without drawing from it
         return self.schedule.step(eps, t, x_t, eta=self.eta, prev_sample=x_t, prev_timestep=t_prev)
@@ -264,17 +270,17 @@ class DiffusionPolicy(nn.Module):
         """x0_hat_theta(x_t): the clean scene the step predicts (differentiable in the adapter)."""
         return self._step(x_t, t, floor).pred_original_sample
 
-    def log_prob(self, x_t, t, floor, x_prev) -> torch.Tensor:
+    def log_prob(self, x_t, t, floor, x_prev, classes=None) -> torch.Tensor:
         """log pi(x_prev | x_t, t, floor), mean-reduced per scene: (B,)."""
-        mean, std = self(x_t, t, floor)
+        mean, std = self(x_t, t, floor, classes)
         return gaussian_log_prob(x_prev, mean, std)
 
     @torch.no_grad()
     def act(self, x_t, t, floor, generator: torch.Generator | None = None, deterministic: bool = False,
-            return_x0: bool = False):
+            return_x0: bool = False, classes: torch.Tensor | None = None):
         """Sample x_{t-1} (the mean when ``deterministic``) and its log-probability (and, with ``return_x0``,
         the clean scene x0_hat the step predicts)."""
-        out = self._step(x_t, t, floor)
+        out = self._step(x_t, t, floor, classes)
         mean, std = out.mean, out.std.expand_as(x_t)
         if deterministic or self.eta == 0:
             x_prev = mean
@@ -310,25 +316,29 @@ class DiffusionPolicy(nn.Module):
                                  **kwargs)
 
     def actor(self):
-        """A TorchRL ``ProbabilisticActor`` view: reads ``x_t``, ``t``, ``floor``; writes ``action`` and its
-        mean-reduced ``sample_log_prob``."""
+        """A TorchRL ``ProbabilisticActor`` view: reads ``x_t``, ``t``, ``floor`` (and the rooms' given ``classes``
+        for an adapter with required objects); writes ``action`` and its mean-reduced ``sample_log_prob``."""
         from tensordict.nn import TensorDictModule
         from torchrl.modules import ProbabilisticActor
 
-        module = TensorDictModule(_Gaussian(self), in_keys=["x_t", "t", "floor"], out_keys=["loc", "scale"])
+        in_keys = ["x_t", "t", "floor"] + (["classes"] if self.required.get(self.adapter) else [])
+        module = TensorDictModule(_Gaussian(self), in_keys=in_keys, out_keys=["loc", "scale"])
         return ProbabilisticActor(module, in_keys=["loc", "scale"], out_keys=["action"],
                                   distribution_class=MeanNormal, return_log_prob=True,
                                   log_prob_key="sample_log_prob")
 
 
 class _Gaussian(nn.Module):
-    """(x_t, t, floor) -> (loc, scale) for TensorDictModule (t may carry a trailing dim of 1)."""
+    """(x_t, t, floor[, classes]) -> (loc, scale) for TensorDictModule (t may carry a trailing dim of 1)."""
 
     def __init__(self, policy: DiffusionPolicy):
         super().__init__()
         self.policy = policy
 
-    def forward(self, x_t, t, floor):
+    def forward(self, x_t, t, floor, classes=None):
         batch = x_t.shape[:-2]
-        mean, std = self.policy(x_t.reshape(-1, *x_t.shape[-2:]), t.reshape(-1), floor.reshape(-1, *floor.shape[-2:]))
+        if classes is not None:
+            classes = classes.reshape(-1, classes.shape[-1])
+        mean, std = self.policy(x_t.reshape(-1, *x_t.shape[-2:]), t.reshape(-1), floor.reshape(-1, *floor.shape[-2:]),
+                                classes)
         return mean.reshape(*batch, *mean.shape[-2:]), std.reshape(*batch, *std.shape[-2:])

@@ -372,16 +372,18 @@ def test_a_placement_adapter_moves_objects_but_keeps_the_priors_classes_and_size
         DiffusionPolicy(tiny_prior(), num_steps=STEPS, adapted=["colour"])
 
 
+def perturb(policy, adapter, seed):
+    """Give ``adapter`` non-zero LoRA weights, as training would (its B matrices start at 0)."""
+    g = torch.Generator().manual_seed(seed)
+    with torch.no_grad():
+        for name, p in policy.model.named_parameters():
+            if "lora_B" in name and f".{adapter}." in name:
+                p.add_(0.3 * torch.randn(p.shape, generator=g))
+
+
 def test_a_partial_adapter_follows_the_adapter_it_starts_from_and_carries_it_when_saved(tmp_path):
     """A stage-2 adapter of some features only (here height) keeps the stage-1 adapter's prediction, not the
     prior's, on the others; saved and loaded into a policy without the stage-1 adapter it samples the same."""
-    def perturb(policy, adapter, seed):
-        g = torch.Generator().manual_seed(seed)
-        with torch.no_grad():
-            for name, p in policy.model.named_parameters():
-                if "lora_B" in name and f".{adapter}." in name:
-                    p.add_(0.3 * torch.randn(p.shape, generator=g))
-
     policy = DiffusionPolicy(tiny_prior(), num_steps=STEPS)
     perturb(policy, "stage1", 0)  # a "trained" stage-1 adapter of every feature
     policy.add_adapter("task", init_from="stage1", adapted=["height"])

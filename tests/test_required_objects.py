@@ -12,7 +12,7 @@ from agents.train import TrainConfig
 from iarcs_env.relations import class_mask
 from iarcs_env.required_objects import RequiredObject, with_required
 from iarcs_env.rooms import get_room
-from test_ddpo import FLOORS, STEPS, make_env, tiny_prior
+from test_ddpo import FLOORS, STEPS, make_env, perturb, tiny_prior
 
 CLASSES = list(get_room("bedroom").classes)
 EMPTY = len(CLASSES)
@@ -127,6 +127,33 @@ def test_rollouts_give_the_classes_and_their_log_probs_are_the_policys(tmp_path)
     assert loaded.required["task"] == tuple(NEEDS)
     ok, holding = hold_needs_or_are_full(loaded.sample(MANY_FLOORS, generator=torch.Generator().manual_seed(3)).labels)
     assert ok and holding >= 3
+
+
+def test_slots_given_empty_follow_the_reference_in_sampling_and_in_the_recomputed_log_probs():
+    """Their geometry is never scored: adapting it would only add noise to the policy gradient."""
+    policy = required_policy()
+    perturb(policy, "task", 0)  # a "trained" task adapter
+    classes = policy.required_classes(FLOORS, torch.Generator().manual_seed(1))
+    empty = classes == EMPTY
+    assert empty.any() and (~empty).any()
+    x = torch.randn(len(FLOORS), policy.prior.num_slots, policy.prior.spec.feature_dim,
+                    generator=torch.Generator().manual_seed(2))
+    t, floor = torch.full((len(FLOORS),), 300), policy.prior.floor_condition(FLOORS)
+    with torch.no_grad():
+        task, stage1 = policy.eps(x, t, floor, classes=classes), policy.eps(x, t, floor, adapter="stage1")
+    assert torch.equal(task[empty], stage1[empty])
+    moved = (task - stage1).abs()[~empty]
+    assert moved[:, [0, 2, 6, 7]].min() > 0 and moved[:, [1, 3, 4, 5]].max() == 0  # position and yaw only
+
+    model = DDPO(policy, make_env(num_envs=32), verbose=0, samples_per_floor=4, seed=0)
+    flat = model.collect_rollouts().reshape(-1)
+    args = flat["x_t"], flat["t"].reshape(-1), flat["floor"], flat["action"]
+    assert torch.allclose(policy.log_prob(*args, flat["classes"]), flat["sample_log_prob"], atol=1e-5)
+    assert (flat["classes"] == EMPTY).any()
+    assert (policy.log_prob(*args) - flat["sample_log_prob"]).abs().max() > 1e-4
+    flat["advantage"] = torch.ones(flat.batch_size[0], 1)
+    _, info = model.policy_loss(flat)  # TorchRL's loss module reads the classes too: the ratio is 1
+    assert abs(info["approx_kl"]) < 1e-6 and info["clip_fraction"] == 0
 
 
 def test_a_config_checks_its_required_objects_when_read():
