@@ -9,7 +9,8 @@ Per stored state x_t of the last ``gradient_steps`` stochastic steps of a rollou
 
 with V_ij the overlap volume of the axis-aligned bounds of boxes i and j (exact for axis-aligned furniture, as
 most is, along the walls) and A_i the area (m^2) of box i's footprint, shrunk by 0.05 m per side as in R_out,
-outside the floor polygon; w_out is ``out_of_bound_weight``. Classes come from x0_hat's arg-max (no gradient).
+outside the floor polygon; w_out is ``out_of_bound_weight``. Classes come from x0_hat's arg-max (no gradient), or
+are the rooms' given ones for an adapter with required objects.
 A policy gradient from 32 scenes an epoch has to discover, scene by scene, which way separates two objects;
 this gradient says it for every pair. It uses :class:`~agents.ddpo.DDPO`'s rollouts, evaluation, checkpoints
 and callbacks; only the update differs.
@@ -70,7 +71,7 @@ class PhysicsGradient(DDPO):
                 rows = perm[start:start + cfg.minibatch_size]
                 mb = rollout[rows][:, steps].reshape(-1).to(self.device)
                 floors = [venv.floors[int(i)] for i in mb["floor_index"]]
-                x0_hat = self.policy.predict_x0(mb["x_t"], mb["t"], mb["floor"])
+                x0_hat = self.policy.predict_x0(mb["x_t"], mb["t"], mb["floor"], mb.get("classes", None))
                 loss = physics_penalty(x0_hat.cpu(), venv.stats, floors, cfg.out_of_bound_weight).mean()
                 self.optimizer.zero_grad(set_to_none=True)
                 loss.backward()

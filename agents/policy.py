@@ -266,9 +266,11 @@ class DiffusionPolicy(nn.Module):
         # passing prev_sample makes step() compute the Gaussian without drawing from it
         return self.schedule.step(eps, t, x_t, eta=self.eta, prev_sample=x_t, prev_timestep=t_prev)
 
-    def predict_x0(self, x_t, t, floor) -> torch.Tensor:
-        """x0_hat_theta(x_t): the clean scene the step predicts (differentiable in the adapter)."""
-        return self._step(x_t, t, floor).pred_original_sample
+    def predict_x0(self, x_t, t, floor, classes=None) -> torch.Tensor:
+        """x0_hat_theta(x_t): the clean scene the step predicts (differentiable in the adapter); with the rooms'
+        given ``classes`` (see :meth:`eps`) its class part is theirs."""
+        x0 = self._step(x_t, t, floor, classes).pred_original_sample
+        return x0 if classes is None else self.prior.with_clean_classes(x0, classes)
 
     def log_prob(self, x_t, t, floor, x_prev, classes=None) -> torch.Tensor:
         """log pi(x_prev | x_t, t, floor), mean-reduced per scene: (B,)."""

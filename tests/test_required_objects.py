@@ -144,6 +144,8 @@ def test_slots_given_empty_follow_the_reference_in_sampling_and_in_the_recompute
     assert torch.equal(task[empty], stage1[empty])
     moved = (task - stage1).abs()[~empty]
     assert moved[:, [0, 2, 6, 7]].min() > 0 and moved[:, [1, 3, 4, 5]].max() == 0  # position and yaw only
+    with torch.no_grad():  # the clean scene the physics gradient scores holds the given classes
+        assert torch.equal(policy.predict_x0(x, t, floor, classes)[..., 8:].argmax(-1), classes)
 
     model = DDPO(policy, make_env(num_envs=32), verbose=0, samples_per_floor=4, seed=0)
     flat = model.collect_rollouts().reshape(-1)
