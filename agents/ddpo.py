@@ -374,7 +374,7 @@ class DDPO:
     def kl_to_base(self, batch: TensorDict) -> torch.Tensor:
         """KL(pi_theta || pi_ref) of the step Gaussians (equal variances): mean ||mu - mu_ref||^2 / (2 sigma^2),
         pi_ref the policy's :meth:`~agents.policy.DiffusionPolicy.reference_policy`."""
-        mean, std = self.policy(batch["x_t"], batch["t"], batch["floor"])
+        mean, std = self.policy(batch["x_t"], batch["t"], batch["floor"], batch.get("classes", None))
         with torch.no_grad(), self.policy.reference_policy():
             base, _ = self.policy(batch["x_t"], batch["t"], batch["floor"])
         return ((mean - base) ** 2 / (2 * std**2)).flatten(1).mean(1).mean()

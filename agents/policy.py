@@ -17,8 +17,9 @@ is class ``empty`` *and* geometry 0, so without this rule an adapter of translat
 removes objects by pulling their geometry to 0 (a stage-1 run did: 3.7 -> 3.3 objects per room) or could
 fill empty slots. So an adapter of ``("position", "yaw")`` moves and turns objects on the floor but does not
 add, remove, resize, lift or sink them. An adapter with required objects (:mod:`iarcs_env.required_objects`)
-samples its rooms with their classes given, so no slot can change: its slots given empty follow the reference. The reference is
-saved inside the adapter's folder (``reference/``), so a saved adapter samples the same wherever it is loaded.
+samples its rooms with their classes given, so no slot can change: its slots given empty follow the reference.
+The reference is saved inside the adapter's folder (``reference/``), so a saved adapter samples the same wherever
+it is loaded.
 """
 
 from __future__ import annotations

@@ -1,10 +1,10 @@
 """Which pairs of classes make Col_obj: for each scene file, Col_obj (the metric's colliding ground objects over
 ground objects), the share of ground objects whose only collisions are with a bed while being a nightstand (or
 the reverse), Col_obj with the data's nightstand-bed contact spared (overlaps up to 0.04 m^3, as stage 1's
-collision reward spares them), the five commonest colliding class pairs with their share of the colliding pairs and the median and
-largest overlap volume. It shows how much of a collision fall comes from pulling nightstands off their bed, whose
-box the data's nightstands overlap on purpose, and which pairs the data itself puts in contact (the collision
-reward's ``contact``).
+collision reward spares them), the five commonest colliding class pairs with their share of the colliding pairs
+and the median and largest overlap volume. It shows how much of a collision fall comes from pulling nightstands off
+their bed, whose box the data's nightstands overlap on purpose, and which pairs the data itself puts in contact
+(the collision reward's ``contact``).
 
     .venv/bin/python research/collision_pairs.py [--room bedroom] data=FLOORS.json prior=PRIOR.json stage1=STAGE1.json
 

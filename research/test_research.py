@@ -59,13 +59,30 @@ def test_eval_prior_lists_the_colliding_class_pairs_with_their_overlap():
 
 def test_collision_pairs_separates_nightstand_bed_contact_from_other_collisions():
     script = load("collision_pairs")
-    tucked = make_layout([box("double_bed", 1.5, 1.5, 1.0, 1.0), box("nightstand", 2.65, 1.5, 0.25, 0.25),
+    # a nightstand 0.07 m into its bed (0.028 m^3: the data's kind of contact), a chair 0.15 m into a desk
+    tucked = make_layout([box("double_bed", 1.5, 1.5, 1.0, 1.0), box("nightstand", 2.68, 1.5, 0.25, 0.25),
                           box("chair", 3.6, 0.4, 0.2, 0.2)])
-    desk = make_layout([box("desk", 1.0, 1.0, 0.6, 0.3), box("chair", 1.0, 1.4, 0.25, 0.25)])  # 0.15 m into it
+    desk = make_layout([box("desk", 1.0, 1.0, 0.6, 0.3), box("chair", 1.0, 1.4, 0.25, 0.25)])
     res = script.collisions([tucked, desk])
     assert res["Col_obj"] == pytest.approx(4 / 5) and res["only_nightstand_bed"] == pytest.approx(2 / 5)
-    assert res["pairs"] == {("double_bed", "nightstand"): 1, ("chair", "desk"): 1}
-    assert res["volumes"] == pytest.approx([0.1 * 0.5 * 0.8], rel=1e-4)
+    assert res["Col_obj_beyond_contact"] == pytest.approx(2 / 5)  # the contact is spared, the chair is not
+    assert {k: len(v) for k, v in res["pairs"].items()} == {("double_bed", "nightstand"): 1, ("chair", "desk"): 1}
+    assert res["volumes"] == pytest.approx([0.07 * 0.5 * 0.8], rel=1e-4)
+    deeper = make_layout([box("double_bed", 1.5, 1.5, 1.0, 1.0), box("nightstand", 2.6, 1.5, 0.25, 0.25)])
+    assert script.collisions([deeper])["Col_obj_beyond_contact"] == 1  # 0.064 m^3: more than the data's contact
+
+
+def test_gradient_noise_tells_signal_from_noise():
+    script = load("gradient_noise")
+    g = torch.Generator().manual_seed(0)
+    signal = torch.randn(1, 20000, generator=g, dtype=torch.float64)
+    jitter = 0.01 * torch.randn(6, 20000, generator=g, dtype=torch.float64)
+    same = script.gradient_statistics(signal.expand(6, -1) + jitter)
+    assert same["cosine"] > 0.99 and same["signal_share"] == pytest.approx(1, abs=0.01)
+    noise = script.gradient_statistics(torch.randn(6, 20000, generator=g, dtype=torch.float64))
+    assert abs(noise["cosine"]) < 0.02 and abs(noise["signal_share"]) < 0.02
+    half = script.gradient_statistics(signal + torch.randn(6, 20000, generator=g, dtype=torch.float64))
+    assert half["signal_share"] == pytest.approx(0.5, abs=0.03) and half["cosine"] == pytest.approx(0.5, abs=0.03)
 
 
 def test_eval_prior_reports_task_success_per_row():
