@@ -136,6 +136,19 @@ def test_relation_fidelity_takes_two_nightstands_apart():
     assert row["two_nightstands %"] == pytest.approx(100 / 3)
 
 
+def test_required_share_mixes_the_rooms_with_and_without_the_objects():
+    script = load("required_share")
+    bed = box("double_bed", 2.0, 1.05, 0.8, 1.0)
+    flanked = make_layout([bed, box("nightstand", 3.05, 0.5, 0.2, 0.2), box("nightstand", 0.95, 0.5, 0.2, 0.2)])
+    alone = make_layout([bed, box("wardrobe", 0.5, 3.0, 0.5, 0.3)])
+    stage1, given = [alone] * 200, [flanked] * 200
+    rows = script.mixtures("two_nightstands", stage1, stage1, given, [1.0, 0.5, 0.0])
+    assert [r[1] for r in rows[::2]] == [1.0, 0.0] and 0.4 < rows[1][1] < 0.6  # success: the share given
+    assert rows[2][2] == pytest.approx(0.0, abs=1e-6) and rows[1][2] < rows[0][2]  # KL to stage 1's own rooms
+    with pytest.raises(ValueError, match="same floors"):
+        script.mixtures("two_nightstands", stage1, stage1, given[:10], [1.0])
+
+
 def test_relation_fidelity_counts_nightstands_overlapping_their_bed():
     """research/relation_fidelity.py: of the nightstands within 0.3 m of a bed, the share whose box overlaps it."""
     from iarcs_env.scene import SceneBatch
