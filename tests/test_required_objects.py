@@ -146,6 +146,16 @@ def test_slots_given_empty_follow_the_reference_in_sampling_and_in_the_recompute
     assert moved[:, [0, 2, 6, 7]].min() > 0 and moved[:, [1, 3, 4, 5]].max() == 0  # position and yaw only
     with torch.no_grad():  # the clean scene the physics gradient scores holds the given classes
         assert torch.equal(policy.predict_x0(x, t, floor, classes)[..., 8:].argmax(-1), classes)
+    seen = []
+
+    def spy(x_t, t, floor_context=None, classes=None):
+        seen.append(classes)
+        return policy.eps(x_t, t, floor_context=floor_context, classes=classes)
+
+    # sampling hands the policy's eps the classes (twice over under classifier-free guidance: cond and uncond)
+    policy.prior.sample(FLOORS, STEPS, generator=torch.Generator().manual_seed(3), eps_fn=spy, classes=classes,
+                        guidance_scale=2.0)
+    assert len(seen) == STEPS and all(torch.equal(c, torch.cat([classes, classes])) for c in seen)
 
     model = DDPO(policy, make_env(num_envs=32), verbose=0, samples_per_floor=4, seed=0)
     flat = model.collect_rollouts().reshape(-1)
