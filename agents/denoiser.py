@@ -511,15 +511,15 @@ class ScenePrior:
             cond = self.floor_condition(floors)
             shape = (len(floors), self.num_slots, self.spec.feature_dim)
             x_T = standard_normal(shape, generator, self.device)
+            if classes is not None and eps_fn is not None:  # a policy's: its slots given empty follow its reference
+                given = classes.to(self.device).repeat(1 if guidance_scale == 1.0 else 2, 1)  # guidance: cond + uncond
+                eps_fn = functools.partial(eps_fn, classes=given)
             fn = self.model_fn(cond, guidance_scale, eps_fn)
             if classes is None:
                 return self.schedule.sample(fn, shape, num_steps=num_steps, eta=eta, generator=generator, x_T=x_T,
                                             return_trajectory=return_trajectory)
             if return_trajectory:
                 raise ValueError("sampling with given classes returns no trajectory")
-            if eps_fn is not None:  # a policy's: its slots given empty follow its reference
-                given = classes.to(self.device).repeat(1 if guidance_scale == 1.0 else 2, 1)  # guidance: cond + uncond
-                fn = self.model_fn(cond, guidance_scale, functools.partial(eps_fn, classes=given))
             x0 = self.schedule.sample(lambda x, t: fn(self.with_classes(x, t, classes, generator), t), shape,
                                       num_steps=num_steps, eta=eta, generator=generator, x_T=x_T)
             return self.with_clean_classes(x0, classes)
