@@ -14,6 +14,12 @@ are the rooms' given ones for an adapter with required objects.
 A policy gradient from 32 scenes an epoch has to discover, scene by scene, which way separates two objects;
 this gradient says it for every pair. It uses :class:`~agents.ddpo.DDPO`'s rollouts, evaluation, checkpoints
 and callbacks; only the update differs.
+
+In stage 2 the task reward joins it: ``loss -= w_task * mean over scenes of R_task(x0_hat(x_t))``, with w_task
+the composite reward's weight of its ``task`` term. The generated program runs in its sandbox, which returns
+d R_task / d geometry (:meth:`rewards.sandbox.SandboxedReward.gradient`); the chain rule through the decoding is
+applied here, as a vector-Jacobian product. The checks of free space (walkable grids, turning circles) have no
+gradient; distances, offsets, angles and heights have.
 """
 
 from __future__ import annotations
@@ -23,7 +29,7 @@ import torch
 from tensordict import TensorDict
 
 from iarcs_env import geometry as geo
-from iarcs_env.scene import decode_geometry, floor_half_extents
+from iarcs_env.scene import SceneBatch, decode_geometry, floor_half_extents
 
 from . import distributed
 from .ddpo import DDPO
@@ -45,11 +51,21 @@ def physics_penalty(x0: torch.Tensor, stats, floors, out_of_bound_weight: float 
     return volume + out_of_bound_weight * outside.to(volume)
 
 
+def task_surrogate(task_reward, x0: torch.Tensor, stats, floors) -> tuple[torch.Tensor, torch.Tensor]:
+    """(surrogate (scalar), values (B,)): the task reward of the scenes that model features ``x0`` describe,
+    decoded as the environment decodes them (:meth:`SceneBatch.decode`), and a surrogate whose gradient with
+    respect to ``x0`` is that of the values' sum (the sandbox's gradient chained through the decoding)."""
+    scenes = SceneBatch.decode(x0, stats, list(floors), keep_graph=True)
+    values, grad = task_reward.gradient(scenes)  # the sandbox gets the values, detached
+    surrogate = sum((grad[key] * getattr(scenes, key)).sum() for key in ("translations", "half_sizes", "yaws"))
+    return surrogate, values
+
+
 class PhysicsGradient(DDPO):
     """The physics gradient (module doc) with :class:`DDPO`'s surface: ``learn``, ``save``/``load``,
     callbacks. Uses ``learning_rate``, ``minibatch_size``, ``num_inner_epochs``, ``max_grad_norm``,
     ``gradient_steps`` and ``out_of_bound_weight`` of :class:`~agents.ddpo.DDPOConfig`; the env's reward is
-    logged, not optimised."""
+    logged, not optimised, but for a stage-2 task reward, whose gradient joins (module doc)."""
 
     name = "PHYSICS-GRADIENT"
 
@@ -59,11 +75,18 @@ class PhysicsGradient(DDPO):
             raise ValueError(f"gradient_steps must be at least 1 (the last steps whose x0_hat gets the gradient); "
                              f"got {self.config.gradient_steps}")
 
+    def task_reward(self):
+        """(the task reward, its weight) when the env's reward has a differentiable ``task`` term, else None."""
+        fn = self.venv.reward_fn
+        task = getattr(fn, "functions", {}).get("task")
+        return (task, fn.weights["task"]) if hasattr(task, "gradient") else None
+
     def train(self, rollout: TensorDict) -> dict[str, float]:
         cfg, venv = self.config, self.venv
         steps = self.stochastic_steps()[-cfg.gradient_steps:]
         b = rollout.batch_size[0]
         infos = []
+        task = self.task_reward()
         self.policy.model.eval()
         for _ in range(cfg.num_inner_epochs):
             perm = torch.randperm(b, generator=self.generator)
@@ -72,12 +95,18 @@ class PhysicsGradient(DDPO):
                 mb = rollout[rows][:, steps].reshape(-1).to(self.device)
                 floors = [venv.floors[int(i)] for i in mb["floor_index"]]
                 x0_hat = self.policy.predict_x0(mb["x_t"], mb["t"], mb["floor"], mb.get("classes", None))
-                loss = physics_penalty(x0_hat.cpu(), venv.stats, floors, cfg.out_of_bound_weight).mean()
+                x0_hat = x0_hat.cpu()
+                loss = physics_penalty(x0_hat, venv.stats, floors, cfg.out_of_bound_weight).mean()
+                info = {"physics": loss.item()}
+                if task is not None:
+                    surrogate, values = task_surrogate(task[0], x0_hat, venv.stats, floors)
+                    loss = loss - task[1] * surrogate / len(floors)
+                    info["task"] = values.mean().item()
                 self.optimizer.zero_grad(set_to_none=True)
                 loss.backward()
                 distributed.average_gradients(self.policy.trainable_parameters())
                 grad_norm = torch.nn.utils.clip_grad_norm_(self.policy.trainable_parameters(), cfg.max_grad_norm)
                 self.optimizer.step()
-                infos.append({"loss": loss.item(), "grad_norm": float(grad_norm)})
+                infos.append({**info, "loss": loss.item(), "grad_norm": float(grad_norm)})
         stats = {key: float(np.mean([i[key] for i in infos])) for key in infos[0]}
         return {**stats, "approx_kl": 0.0, "clip_fraction": 0.0}

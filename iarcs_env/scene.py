@@ -211,14 +211,15 @@ class SceneBatch:
 
     @classmethod
     def decode(cls, x: torch.Tensor, stats: "DatasetStats", floors: list[FloorPlan],
-               ids: list[str] | None = None) -> "SceneBatch":
-        """Scene batch from model features (B, N, 8 + K): class by arg-max, geometry de-scaled."""
+               ids: list[str] | None = None, keep_graph: bool = False) -> "SceneBatch":
+        """Scene batch from model features (B, N, 8 + K): class by arg-max, geometry de-scaled; with
+        ``keep_graph`` the geometry stays differentiable in ``x`` (a reward's gradient chained to the model)."""
         spec = get_room(stats.room_type)
         if x.shape[-1] != spec.feature_dim:
             raise ValueError(f"{spec.name} features have {spec.feature_dim} numbers per slot; got {x.shape[-1]}")
         if len(floors) != x.shape[0]:
             raise ValueError(f"decoding {x.shape[0]} scenes needs as many floor plans; got {len(floors)}")
-        x = x.detach().float()
+        x = x.float() if keep_graph else x.detach().float()
         extents = floor_half_extents(floors) if stats.translation_frame == "room" else None
         trans, half, yaws = decode_geometry(x, stats, extents)
         labels = x[..., 8:].argmax(-1)

@@ -76,6 +76,9 @@ class ScoreResult:
     clipped: int = 0
     seconds: float = 0.0
     output: str = ""
+    gradient: dict | None = None
+    """With ``score(batch, gradient=True)``: d(sum of values) / d geometry, ``{"translations": (B, N, 3),
+    "half_sizes": (B, N, 3), "yaws": (B, N)}`` float64, finite (zeros on failure)."""
 
 
 class SandboxError(RuntimeError):
@@ -310,34 +313,44 @@ class RewardSandbox:
             note = f" ({reply['clipped']} values beyond +-{self.clamp:g} were clipped)" if reply.get("clipped") else ""
             return LoadResult(True, f"loaded; smoke test passed on {values.size} fixture scenes{summary}{note}")
 
-    def score(self, batch) -> ScoreResult:
+    def score(self, batch, gradient: bool = False) -> ScoreResult:
         """Run the active program on a SceneBatch. On failure ``ok`` is False, ``values`` are zeros and
-        ``message`` says why (error, timeout, crash); the program stays loaded."""
+        ``message`` says why (error, timeout, crash); the program stays loaded. With ``gradient`` the worker
+        also differentiates the values' sum with respect to the geometry (``ScoreResult.gradient``)."""
         b = batch.batch_size
         zeros = np.zeros(b, dtype=np.float64)
+        shapes = {"translations": tuple(batch.translations.shape), "half_sizes": tuple(batch.half_sizes.shape),
+                  "yaws": tuple(batch.yaws.shape)}
+        no_gradient = {k: np.zeros(v) for k, v in shapes.items()} if gradient else None
         if self.code is None:
-            return ScoreResult(zeros, False, "no reward program is loaded")
+            return ScoreResult(zeros, False, "no reward program is loaded", gradient=no_gradient)
         t = time.monotonic()
         with self._lock:
             try:
-                reply = self._request({"op": "score", "batch": describe_batch(batch)})
+                reply = self._request({"op": "score", "batch": describe_batch(batch), "gradient": gradient})
             except _WorkerLost as err:
                 return ScoreResult(zeros, False, f"reward(scene) failed on a batch of {b} scenes: the sandbox "
-                                   f"worker {err}; it was restarted", seconds=time.monotonic() - t)
+                                   f"worker {err}; it was restarted", seconds=time.monotonic() - t,
+                                   gradient=no_gradient)
         seconds = time.monotonic() - t
         output = str(reply.get("output", ""))[:MAX_PRINT_CHARS + 200]
         if not reply.get("ok"):
             return ScoreResult(zeros, False, str(reply.get("message", "unknown error"))[:4000], seconds=seconds,
-                               output=output)
+                               output=output, gradient=no_gradient)
         try:
             values = np.asarray(reply["values"], dtype=np.float64).reshape(-1)
+            grads = ({k: np.asarray(reply["gradient"][k], dtype=np.float64) for k in shapes} if gradient else None)
         except (KeyError, TypeError, ValueError):
-            values = np.zeros(0)
-        if values.shape != (b,):
+            values, grads = np.zeros(0), None
+        if values.shape != (b,) or (gradient and (grads is None or any(grads[k].shape != v
+                                                                        for k, v in shapes.items()))):
             with self._lock:
                 self._kill()  # the protocol cannot be trusted any more: start afresh next time
-            return ScoreResult(zeros, False, f"the sandbox worker returned {values.size} values for {b} scenes",
-                               seconds=seconds, output=output)
+            return ScoreResult(zeros, False, f"the sandbox worker returned {values.size} values for {b} scenes"
+                               + (" or a gradient of the wrong shape" if gradient else ""),
+                               seconds=seconds, output=output, gradient=no_gradient)
+        if grads is not None:  # never trust the worker
+            grads = {k: np.nan_to_num(g, nan=0.0, posinf=0.0, neginf=0.0) for k, g in grads.items()}
         values, extra_nonfinite, extra_clipped = _clamp(values, self.clamp)  # never trust the worker
         nonfinite = int(reply.get("nonfinite", 0)) + extra_nonfinite
         clipped = int(reply.get("clipped", 0)) + extra_clipped
@@ -346,7 +359,7 @@ class RewardSandbox:
             notes.append(f"{nonfinite} of {b} values were NaN/inf (NaN -> 0, +-inf -> +-{self.clamp:g})")
         if clipped:
             notes.append(f"{clipped} of {b} values were beyond +-{self.clamp:g} and were clipped")
-        return ScoreResult(values, True, "; ".join(notes), nonfinite, clipped, seconds, output)
+        return ScoreResult(values, True, "; ".join(notes), nonfinite, clipped, seconds, output, grads)
 
     def close(self) -> None:
         """Stop the worker (idempotent)."""
@@ -421,8 +434,8 @@ class SandboxedReward:
         self.last_message = message
         self.messages.append(message)
 
-    def __call__(self, batch) -> torch.Tensor:
-        result = self.sandbox.score(batch)
+    def _score(self, batch, gradient: bool) -> ScoreResult:
+        result = self.sandbox.score(batch, gradient=gradient)
         self.calls += 1
         self.seconds += result.seconds
         self.nonfinite += result.nonfinite
@@ -431,7 +444,18 @@ class SandboxedReward:
             self._record(f"batch {self.calls}: {result.message}")
         elif result.message:
             self._record(f"batch {self.calls}: {result.message}")
+        return result
+
+    def __call__(self, batch) -> torch.Tensor:
+        result = self._score(batch, gradient=False)
         return torch.as_tensor(result.values, dtype=torch.float32, device=batch.labels.device)
+
+    def gradient(self, batch) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
+        """(values (B,), their sum's gradient with respect to the batch's geometry: ``translations``,
+        ``half_sizes``, ``yaws``), zeros where the batch fails (recorded as in a call)."""
+        result = self._score(batch, gradient=True)
+        as_tensor = lambda a: torch.as_tensor(a, dtype=torch.float32, device=batch.labels.device)  # noqa: E731
+        return as_tensor(result.values), {k: as_tensor(g) for k, g in result.gradient.items()}
 
     def load(self, code: str) -> LoadResult:
         """Swap in a new program; on failure the current one stays and the failure is recorded."""

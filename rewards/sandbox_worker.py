@@ -62,15 +62,20 @@ def describe_batch(batch) -> dict:
     }
 
 
-def _rebuild_batch(desc: dict):
+#: The geometry a reward's gradient is taken with respect to (``score`` with ``gradient``).
+GEOMETRY = ("translations", "half_sizes", "yaws")
+
+
+def _rebuild_batch(desc: dict, requires_grad: bool = False):
+    """The SceneBatch of a description; with ``requires_grad`` its geometry tensors are autograd leaves
+    (``batch.translations`` etc.), so a program's value can be differentiated with respect to them."""
     from iarcs_env.floorplan import FloorPlan
     from iarcs_env.rooms import get_room
     from iarcs_env.scene import SceneBatch
 
-    return SceneBatch(get_room(desc["room"]), torch.from_numpy(desc["labels"]),
-                      torch.from_numpy(desc["translations"]), torch.from_numpy(desc["half_sizes"]),
-                      torch.from_numpy(desc["yaws"]), [FloorPlan(np.asarray(v)) for v in desc["floors"]],
-                      list(desc["ids"]))
+    geometry = [torch.from_numpy(desc[k]).requires_grad_(requires_grad) for k in GEOMETRY]
+    return SceneBatch(get_room(desc["room"]), torch.from_numpy(desc["labels"]), *geometry,
+                      [FloorPlan(np.asarray(v)) for v in desc["floors"]], list(desc["ids"]))
 
 
 def _write_frame(fd: int, payload: bytes) -> None:
@@ -304,17 +309,32 @@ def worker_main(config_json: str) -> None:
     clamp = float(config["clamp"])
     program = None  # (reward function, source lines)
 
-    def run(fn, batch) -> dict:
-        """Call the program on a batch; the reply dict."""
+    def run(fn, batch, gradient: bool = False) -> dict:
+        """Call the program on a batch; the reply dict. With ``gradient`` the reply also holds the gradient of
+        the values' sum with respect to the batch's geometry (zero for scenes whose value was NaN/inf or
+        clipped, and where the program's value does not depend on the geometry)."""
         scene = Scene(batch)
         state["running"] = True
         try:
             out = fn(scene)
             values = _to_values(out, batch.batch_size)
+            leaves = [getattr(batch, k) for k in GEOMETRY]
+            if gradient and isinstance(out, torch.Tensor) and out.requires_grad:
+                grads = torch.autograd.grad(out.float().sum(), leaves, allow_unused=True)
+            else:
+                grads = (None,) * len(leaves)
         finally:
             state["running"] = False
+        kept = np.isfinite(values) & (np.abs(values) <= clamp)
         values, nonfinite, clipped = _clamp(values, clamp)
-        return {"ok": True, "values": values.tolist(), "nonfinite": nonfinite, "clipped": clipped}
+        reply = {"ok": True, "values": values.tolist(), "nonfinite": nonfinite, "clipped": clipped}
+        if gradient:
+            reply["gradient"] = {}
+            for key, leaf, g in zip(GEOMETRY, leaves, grads):
+                g = torch.zeros_like(leaf) if g is None else torch.nan_to_num(g.detach(), nan=0.0, posinf=0.0, neginf=0.0)
+                g[torch.from_numpy(~kept)] = 0
+                reply["gradient"][key] = g.to(torch.float64).numpy().tolist()
+        return reply
 
     def handle(msg: dict) -> dict:
         nonlocal program
@@ -344,7 +364,8 @@ def worker_main(config_json: str) -> None:
         if op == "score":
             if program is None:
                 return {"ok": False, "message": "no reward program is loaded in the worker"}
-            return run(program[0], _rebuild_batch(msg["batch"]))
+            gradient = bool(msg.get("gradient", False))
+            return run(program[0], _rebuild_batch(msg["batch"], gradient), gradient)
         return {"ok": False, "message": f"unknown request {op!r}"}
 
     _write_frame(proto_out, json.dumps({"ok": True, "ready": True, "pid": os.getpid(), "confinement": confinement,

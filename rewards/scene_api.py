@@ -44,8 +44,8 @@ class Scene:
         self._cache: dict = {}
 
     def _cached(self, key, fn):
-        if key not in self._cache:
-            with single_thread(), torch.no_grad():
+        if key not in self._cache:  # differentiable in the geometry when it requires grad (reward gradients)
+            with single_thread():
                 self._cache[key] = fn()
         value = self._cache[key]
         return value.clone() if isinstance(value, torch.Tensor) else value

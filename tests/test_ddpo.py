@@ -228,6 +228,55 @@ def test_physics_gradient_lowers_the_penalty_of_its_rollouts_and_resumes_by_name
         make_model(PhysicsGradient, gradient_steps=0)
 
 
+LOW_TOPS = "def reward(scene):\n    return scene.mean_of(scene.below(scene.top_height, 0.4, scale=0.3), scene.present)\n"
+
+
+def test_task_surrogate_chains_the_sandboxed_programs_gradient_through_the_decoding():
+    """The sandbox's d R / d geometry, chained through SceneBatch.decode, equals autograd of the same program run
+    in this process on the decoded scenes, with respect to the model features."""
+    from agents.physics_gradient import task_surrogate
+    from iarcs_env.scene import SceneBatch
+    from rewards.sandbox import SandboxedReward
+    from rewards.scene_api import Scene
+
+    stats = default_stats("bedroom")
+    layouts = [l.centred() for l in generate_layouts("bedroom", 6, seed=2)]
+    batch = SceneBatch.from_layouts(layouts)
+    x0 = (batch.encode(stats) + 0.05 * torch.randn(batch.encode(stats).shape, generator=torch.Generator().manual_seed(0)))
+    x0 = x0.requires_grad_(True)
+    namespace = {"torch": torch, "math": __import__("math")}
+    exec(LOW_TOPS, namespace)
+    local = namespace["reward"](Scene(SceneBatch.decode(x0, stats, batch.floors, keep_graph=True)))
+    (expected,) = torch.autograd.grad(local.sum(), x0)
+    with SandboxedReward(LOW_TOPS) as task:
+        surrogate, values = task_surrogate(task, x0, stats, batch.floors)
+    surrogate.backward()
+    torch.testing.assert_close(values, local.detach(), rtol=1e-5, atol=1e-6)
+    assert expected.abs().sum() > 0.1
+    torch.testing.assert_close(x0.grad, expected, rtol=1e-4, atol=1e-5)
+
+
+def test_physics_gradient_follows_the_task_rewards_gradient():
+    """With a sandboxed task term in the env's composite reward, the physics gradient raises that reward on its
+    rollouts' x0_hat (weighed high: the tiny prior's rooms overlap by metres^3); without one it has no task."""
+    from rewards.composite import CompositeReward
+    from rewards.sandbox import SandboxedReward
+
+    assert make_model(PhysicsGradient).task_reward() is None
+    with SandboxedReward(LOW_TOPS) as task:
+        reward = CompositeReward({"task": 100.0}, rewards={"task": task})
+        env = gym.make_vec("iARCS-Bedroom-v0", num_envs=8, vectorization_mode="vector_entry_point", floors=FLOORS,
+                           stats=default_stats("bedroom"), reward=reward, num_steps=STEPS)
+        model = PhysicsGradient(DiffusionPolicy(tiny_prior(), num_steps=STEPS), env, verbose=0, learning_rate=1e-2,
+                                minibatch_size=4, samples_per_floor=4, gradient_steps=2, seed=0)
+        assert model.task_reward() == (task, 100.0)
+        rollout = model.collect_rollouts()
+        first = model.train(rollout)
+        for _ in range(15):
+            last = model.train(rollout)
+    assert last["task"] > first["task"] + 0.1 and np.isfinite(last["loss"])
+
+
 @pytest.mark.parametrize("algo", [DDPO, DDPOSF])
 def test_updates_move_the_policy_towards_high_advantage_actions(algo):
     """After a few updates on one rollout, the policy puts more probability on the chains that scored

@@ -304,6 +304,50 @@ def test_nan_inf_counted_and_clamped(sandbox, batch):
         assert sandbox.load(GOOD).ok
 
 
+#: A smooth program of heights (not cached) and of pair distances (cached by the scene API).
+SMOOTH = ("def reward(scene):\n    low = scene.below(scene.top_height, 1.0, scale=0.5)\n"
+          "    pairs = scene.pair_mask(scene.objects('bed'), scene.objects('nightstand'))\n"
+          "    return scene.mean_of(low, scene.present) - 0.1 * (scene.distance() * pairs).sum((1, 2))\n")
+
+
+def test_gradient_of_a_program_matches_finite_differences_and_is_zero_where_none_exists(sandbox, batch):
+    """``score(gradient=True)``: d(sum of values) / d geometry from the worker equals central differences of the
+    values; a program of counts has a zero gradient; a failing batch gives zeros and says why."""
+    small = batch[:4]  # room 3 holds a bed and a nightstand
+    try:
+        assert sandbox.load(SMOOTH).ok
+        result = sandbox.score(small, gradient=True)
+        assert result.ok, result.message
+        grad = result.gradient
+        assert grad["translations"].shape == (4, small.num_slots, 3) and grad["yaws"].shape == (4, small.num_slots)
+        bed = int(small.labels[3].eq(small.spec.class_index("double_bed")).nonzero()[0, 0])
+        checked = []
+        for key, index in (("translations", (3, bed, 1)), ("half_sizes", (3, bed, 1)), ("translations", (3, bed, 0)),
+                           ("translations", (3, bed, 2))):
+            values = []
+            for step in (1e-2, -1e-2):
+                moved = {k: getattr(small, k).clone() for k in ("translations", "half_sizes", "yaws")}
+                moved[key][index] += step
+                values.append(sandbox.score(SceneBatch(small.spec, small.labels, moved["translations"],
+                                                       moved["half_sizes"], moved["yaws"], small.floors)).values[3])
+            numeric = (values[0] - values[1]) / 2e-2
+            assert grad[key][index] == pytest.approx(numeric, rel=2e-2, abs=1e-3)
+            checked.append(abs(numeric) > 1e-2)
+        assert all(checked)  # the bed's height and its distance to the nightstand both move the reward
+        assert sandbox.load(GOOD).ok
+        counts = sandbox.score(small, gradient=True)
+        assert counts.ok and all((g == 0).all() for g in counts.gradient.values())
+        values, tensors = SandboxedReward(sandbox).gradient(small)
+        assert torch.equal(values, torch.tensor(expected_good(small), dtype=torch.float32))
+        assert tensors["half_sizes"].shape == small.half_sizes.shape and tensors["yaws"].dtype == torch.float32
+        assert sandbox.load(prog("if scene.batch_size == 4:\n    raise ValueError('no gradient today')")).ok
+        failed = sandbox.score(small, gradient=True)
+        assert not failed.ok and "no gradient today" in failed.message
+        assert all((g == 0).all() for g in failed.gradient.values())
+    finally:
+        assert sandbox.load(GOOD).ok
+
+
 def test_runtime_failure_keeps_program_and_sandboxed_reward_returns_zeros(sandbox, batch):
     code = ("def reward(scene):\n    if scene.batch_size == 32:\n        raise ValueError('only on big batches')\n"
             "    return scene.count('nightstand')\n")
