@@ -6,10 +6,13 @@ through the sampler; here through one step's x0_hat, as DiffuScene's physical lo
 Per stored state x_t of the last ``gradient_steps`` stochastic steps of a rollout:
 
     loss = mean over scenes of  sum_{i<j ground} V_ij(x0_hat(x_t)) + w_out sum_i A_i(x0_hat(x_t))
+                                + w_floor sum_{i ground} |bottom_i(x0_hat(x_t))|
 
 with V_ij the overlap volume of the axis-aligned bounds of boxes i and j (exact for axis-aligned furniture, as
-most is, along the walls) and A_i the area (m^2) of box i's footprint, shrunk by 0.05 m per side as in R_out,
-outside the floor polygon; w_out is ``out_of_bound_weight``. Classes come from x0_hat's arg-max (no gradient), or
+most is, along the walls), A_i the area (m^2) of box i's footprint, shrunk by 0.05 m per side as in R_out,
+outside the floor polygon, and bottom_i the height (m) of a ground object's bottom above or below the floor;
+w_out is ``out_of_bound_weight``, w_floor the weight of the run's ``floor_contact`` reward (0 without one: an
+adapter that moves objects on the floor only cannot change it). Classes come from x0_hat's arg-max (no gradient), or
 are the rooms' given ones for an adapter with required objects.
 A policy gradient from 32 scenes an epoch has to discover, scene by scene, which way separates two objects;
 this gradient says it for every pair. It uses :class:`~agents.ddpo.DDPO`'s rollouts, evaluation, checkpoints
@@ -35,10 +38,12 @@ from . import distributed
 from .ddpo import DDPO
 
 
-def physics_penalty(x0: torch.Tensor, stats, floors, out_of_bound_weight: float = 1.0) -> torch.Tensor:
+def physics_penalty(x0: torch.Tensor, stats, floors, out_of_bound_weight: float = 1.0,
+                    floor_weight: float = 0.0) -> torch.Tensor:
     """(B,) overlap volume (m^3) of every pair of ground objects' axis-aligned bounds plus
-    ``out_of_bound_weight`` times the out-of-bound area (m^2, footprints shrunk by 0.05 m) of every object, of
-    model features ``x0`` (B, N, 8 + K) on ``floors``; differentiable in the positions and yaws."""
+    ``out_of_bound_weight`` times the out-of-bound area (m^2, footprints shrunk by 0.05 m) of every object plus
+    ``floor_weight`` times the ground objects' distances (m) from the floor, of model features ``x0``
+    (B, N, 8 + K) on ``floors``; differentiable in the geometry."""
     spec = stats.spec
     trans, half, yaws = decode_geometry(x0, stats, floor_half_extents(floors).to(x0))
     labels = x0[..., 8:].argmax(-1)
@@ -48,7 +53,8 @@ def physics_penalty(x0: torch.Tensor, stats, floors, out_of_bound_weight: float 
     pairs = (ground[:, :, None] & ground[:, None]).triu(1)
     volume = (overlap.prod(-1) * pairs).sum((1, 2))
     outside = geo.box_out_of_floor_area(trans, half, yaws, floors, valid, geo.OUT_OF_BOUND_SHRINK).sum(1)
-    return volume + out_of_bound_weight * outside.to(volume)
+    off_floor = geo.floor_gaps(trans, half, ground).sum(1)
+    return volume + out_of_bound_weight * outside.to(volume) + floor_weight * off_floor
 
 
 def task_surrogate(task_reward, x0: torch.Tensor, stats, floors) -> tuple[torch.Tensor, torch.Tensor]:
@@ -75,6 +81,10 @@ class PhysicsGradient(DDPO):
             raise ValueError(f"gradient_steps must be at least 1 (the last steps whose x0_hat gets the gradient); "
                              f"got {self.config.gradient_steps}")
 
+    def floor_weight(self) -> float:
+        """The weight of the run's ``floor_contact`` reward (0 without one)."""
+        return float(getattr(self.venv.reward_fn, "weights", {}).get("floor_contact", 0.0))
+
     def task_reward(self):
         """(the task reward, its weight) when the env's reward has a differentiable ``task`` term, else None."""
         fn = self.venv.reward_fn
@@ -86,7 +96,7 @@ class PhysicsGradient(DDPO):
         steps = self.stochastic_steps()[-cfg.gradient_steps:]
         b = rollout.batch_size[0]
         infos = []
-        task = self.task_reward()
+        task, floor_weight = self.task_reward(), self.floor_weight()
         self.policy.model.eval()
         for _ in range(cfg.num_inner_epochs):
             perm = torch.randperm(b, generator=self.generator)
@@ -96,7 +106,7 @@ class PhysicsGradient(DDPO):
                 floors = [venv.floors[int(i)] for i in mb["floor_index"]]
                 x0_hat = self.policy.predict_x0(mb["x_t"], mb["t"], mb["floor"], mb.get("classes", None))
                 x0_hat = x0_hat.cpu()
-                loss = physics_penalty(x0_hat, venv.stats, floors, cfg.out_of_bound_weight).mean()
+                loss = physics_penalty(x0_hat, venv.stats, floors, cfg.out_of_bound_weight, floor_weight).mean()
                 info = {"physics": loss.item()}
                 if task is not None:
                     surrogate, values = task_surrogate(task[0], x0_hat, venv.stats, floors)

@@ -178,15 +178,17 @@ def test_gae_lambda_zero_credits_a_step_only_with_its_own_change():
 
 def test_physics_penalty_is_the_overlap_volume_plus_the_out_of_bound_area_and_descends():
     """Axis-aligned boxes, where the bounds' overlap is the exact one: two overlapping boxes in an L-shaped room
-    and one through its notch score what the metrics' geometry measures on the decoded scene, and a small step
-    down the penalty's gradient in the model features lowers it."""
+    and one through its notch score what the metrics' geometry measures on the decoded scene, a nightstand
+    lifted 0.2 m adds its gap at the floor weight, and a small step down the penalty's gradient in the model
+    features lowers it."""
     from iarcs_env import geometry as geo
     from iarcs_env.scene import SceneBatch
     from scene_factory import L_SHAPE, box, make_layout
 
     stats = default_stats("bedroom")
     layout = make_layout([box("wardrobe", 1.0, 1.0, 0.5, 0.3), box("cabinet", 1.8, 1.0, 0.5, 0.3),
-                          box("nightstand", 3.0, 2.0, 0.3, 0.3), box("double_bed", 1.0, 3.0, 0.7, 0.9)], floor=L_SHAPE)
+                          box("nightstand", 3.0, 2.0, 0.3, 0.3, y0=0.2), box("double_bed", 1.0, 3.0, 0.7, 0.9)],
+                         floor=L_SHAPE)
     batch = SceneBatch.from_layouts([layout.centred()])
     x0 = batch.encode(stats).clone().requires_grad_(True)
     penalty = physics_penalty(x0, stats, batch.floors)
@@ -198,6 +200,10 @@ def test_physics_penalty_is_the_overlap_volume_plus_the_out_of_bound_area_and_de
     assert penalty.item() == pytest.approx(float(volume + outside), rel=1e-4)
     weighted = physics_penalty(x0.detach(), stats, batch.floors, out_of_bound_weight=3.0)
     assert weighted.item() == pytest.approx(float(volume + 3 * outside), rel=1e-4)
+    gap = float(geo.floor_gaps(scene.translations, scene.half_sizes, scene.ground_mask).sum())
+    assert gap == pytest.approx(0.2, abs=1e-3)
+    lifted = physics_penalty(x0.detach(), stats, batch.floors, floor_weight=10.0)
+    assert lifted.item() == pytest.approx(float(volume + outside + 10 * gap), rel=1e-4)
     penalty.sum().backward()
     assert x0.grad[..., [0, 2]].abs().sum() > 0 and x0.grad[..., 3:6].abs().sum() > 0
     stepped = physics_penalty(x0.detach() - 1e-3 * x0.grad, stats, batch.floors)
