@@ -9,7 +9,8 @@ Per stored state x_t of the last ``gradient_steps`` stochastic steps of a rollou
                                 + w_floor sum_{i ground} |bottom_i(x0_hat(x_t))|
 
 with V_ij the overlap volume of the axis-aligned bounds of boxes i and j (exact for axis-aligned furniture, as
-most is, along the walls), A_i the area (m^2) of box i's footprint, shrunk by 0.05 m per side as in R_out,
+most is, along the walls; its vertical extent carries no gradient: furniture is separated by moving it apart,
+not by flattening it, which an adapter of heights would otherwise do), A_i the area (m^2) of box i's footprint, shrunk by 0.05 m per side as in R_out,
 outside the floor polygon, and bottom_i the height (m) of a ground object's bottom above or below the floor;
 w_out is ``out_of_bound_weight``, w_floor the weight of the run's ``floor_contact`` reward (0 without one: an
 adapter that moves objects on the floor only cannot change it). Classes come from x0_hat's arg-max (no gradient), or
@@ -51,7 +52,7 @@ def physics_penalty(x0: torch.Tensor, stats, floors, out_of_bound_weight: float 
     ground = torch.tensor(spec.ground_mask(), device=x0.device)[labels]
     overlap = geo.bounds_overlaps(trans, half, yaws)
     pairs = (ground[:, :, None] & ground[:, None]).triu(1)
-    volume = (overlap.prod(-1) * pairs).sum((1, 2))
+    volume = (overlap[..., 0] * overlap[..., 1].detach() * overlap[..., 2] * pairs).sum((1, 2))
     outside = geo.box_out_of_floor_area(trans, half, yaws, floors, valid, geo.OUT_OF_BOUND_SHRINK).sum(1)
     off_floor = geo.floor_gaps(trans, half, ground).sum(1)
     return volume + out_of_bound_weight * outside.to(volume) + floor_weight * off_floor

@@ -180,7 +180,7 @@ def test_physics_penalty_is_the_overlap_volume_plus_the_out_of_bound_area_and_de
     """Axis-aligned boxes, where the bounds' overlap is the exact one: two overlapping boxes in an L-shaped room
     and one through its notch score what the metrics' geometry measures on the decoded scene, a nightstand
     lifted 0.2 m adds its gap at the floor weight, and a small step down the penalty's gradient in the model
-    features lowers it."""
+    features lowers it, moving footprints, never heights or elevations (without a floor weight)."""
     from iarcs_env import geometry as geo
     from iarcs_env.scene import SceneBatch
     from scene_factory import L_SHAPE, box, make_layout
@@ -205,7 +205,8 @@ def test_physics_penalty_is_the_overlap_volume_plus_the_out_of_bound_area_and_de
     lifted = physics_penalty(x0.detach(), stats, batch.floors, floor_weight=10.0)
     assert lifted.item() == pytest.approx(float(volume + outside + 10 * gap), rel=1e-4)
     penalty.sum().backward()
-    assert x0.grad[..., [0, 2]].abs().sum() > 0 and x0.grad[..., 3:6].abs().sum() > 0
+    assert x0.grad[..., [0, 2]].abs().sum() > 0 and x0.grad[..., [3, 5]].abs().sum() > 0
+    assert (x0.grad[..., [1, 4]] == 0).all()  # overlaps are not cleared by flattening or sinking furniture
     stepped = physics_penalty(x0.detach() - 1e-3 * x0.grad, stats, batch.floors)
     assert stepped.item() < penalty.item()
 
