@@ -28,6 +28,8 @@ gradient; distances, offsets, angles and heights have.
 
 from __future__ import annotations
 
+import sys
+
 import numpy as np
 import torch
 from tensordict import TensorDict
@@ -58,14 +60,14 @@ def physics_penalty(x0: torch.Tensor, stats, floors, out_of_bound_weight: float 
     return volume + out_of_bound_weight * outside.to(volume) + floor_weight * off_floor
 
 
-def task_surrogate(task_reward, x0: torch.Tensor, stats, floors) -> tuple[torch.Tensor, torch.Tensor]:
-    """(surrogate (scalar), values (B,)): the task reward of the scenes that model features ``x0`` describe,
+def task_surrogate(task_reward, x0: torch.Tensor, stats, floors) -> tuple[torch.Tensor, torch.Tensor, float]:
+    """(surrogate (scalar), values (B,), the gradient's L1 norm): the task reward of the scenes that model features ``x0`` describe,
     decoded as the environment decodes them (:meth:`SceneBatch.decode`), and a surrogate whose gradient with
     respect to ``x0`` is that of the values' sum (the sandbox's gradient chained through the decoding)."""
     scenes = SceneBatch.decode(x0, stats, list(floors), keep_graph=True)
     values, grad = task_reward.gradient(scenes)  # the sandbox gets the values, detached
     surrogate = sum((grad[key] * getattr(scenes, key)).sum() for key in ("translations", "half_sizes", "yaws"))
-    return surrogate, values
+    return surrogate, values, float(sum(g.abs().sum() for g in grad.values()))
 
 
 class PhysicsGradient(DDPO):
@@ -81,6 +83,7 @@ class PhysicsGradient(DDPO):
         if self.config.gradient_steps < 1:
             raise ValueError(f"gradient_steps must be at least 1 (the last steps whose x0_hat gets the gradient); "
                              f"got {self.config.gradient_steps}")
+        self.checked_task_gradient = False
 
     def floor_weight(self) -> float:
         """The weight of the run's ``floor_contact`` reward (0 without one)."""
@@ -110,9 +113,9 @@ class PhysicsGradient(DDPO):
                 loss = physics_penalty(x0_hat, venv.stats, floors, cfg.out_of_bound_weight, floor_weight).mean()
                 info = {"physics": loss.item()}
                 if task is not None:
-                    surrogate, values = task_surrogate(task[0], x0_hat, venv.stats, floors)
+                    surrogate, values, size = task_surrogate(task[0], x0_hat, venv.stats, floors)
                     loss = loss - task[1] * surrogate / len(floors)
-                    info["task"] = values.mean().item()
+                    info.update(task=values.mean().item(), task_gradient=size / len(floors))
                 self.optimizer.zero_grad(set_to_none=True)
                 loss.backward()
                 distributed.average_gradients(self.policy.trainable_parameters())
@@ -120,4 +123,10 @@ class PhysicsGradient(DDPO):
                 self.optimizer.step()
                 infos.append({**info, "loss": loss.item(), "grad_norm": float(grad_norm)})
         stats = {key: float(np.mean([i[key] for i in infos])) for key in infos[0]}
+        if task is not None and not self.checked_task_gradient:  # once, on the first update's scenes
+            self.checked_task_gradient = True
+            if stats["task_gradient"] == 0:
+                print("warning: the task reward has no gradient (checks of free space, such as walkable grids and "
+                      "turning circles, are not differentiable): the physics gradient follows the physical terms "
+                      "alone; train this task with ddpo", file=sys.stderr)
         return {**stats, "approx_kl": 0.0, "clip_fraction": 0.0}

@@ -14,6 +14,8 @@ from agents.callbacks import CheckpointCallback, EvalCallback, StopTrainingOnRew
 from agents.algorithms import get_algorithm
 from agents.ddpo import DDPO, DDPOSF, gae_advantages
 from agents.physics_gradient import PhysicsGradient, physics_penalty
+from rewards.composite import CompositeReward
+from rewards.sandbox import SandboxedReward
 from agents.denoiser import ScenePrior
 from agents.policy import DiffusionPolicy
 from iarcs_env.datasets.procedural import generate_layouts
@@ -243,7 +245,6 @@ def test_task_surrogate_chains_the_sandboxed_programs_gradient_through_the_decod
     in this process on the decoded scenes, with respect to the model features."""
     from agents.physics_gradient import task_surrogate
     from iarcs_env.scene import SceneBatch
-    from rewards.sandbox import SandboxedReward
     from rewards.scene_api import Scene
 
     stats = default_stats("bedroom")
@@ -256,32 +257,39 @@ def test_task_surrogate_chains_the_sandboxed_programs_gradient_through_the_decod
     local = namespace["reward"](Scene(SceneBatch.decode(x0, stats, batch.floors, keep_graph=True)))
     (expected,) = torch.autograd.grad(local.sum(), x0)
     with SandboxedReward(LOW_TOPS) as task:
-        surrogate, values = task_surrogate(task, x0, stats, batch.floors)
+        surrogate, values, size = task_surrogate(task, x0, stats, batch.floors)
     surrogate.backward()
     torch.testing.assert_close(values, local.detach(), rtol=1e-5, atol=1e-6)
-    assert expected.abs().sum() > 0.1
+    assert expected.abs().sum() > 0.1 and size > 0
     torch.testing.assert_close(x0.grad, expected, rtol=1e-4, atol=1e-5)
 
 
-def test_physics_gradient_follows_the_task_rewards_gradient():
-    """With a sandboxed task term in the env's composite reward, the physics gradient raises that reward on its
-    rollouts' x0_hat (weighed high: the tiny prior's rooms overlap by metres^3); without one it has no task."""
-    from rewards.composite import CompositeReward
-    from rewards.sandbox import SandboxedReward
+def task_gradient_model(task):
+    reward = CompositeReward({"task": 100.0}, rewards={"task": task})
+    env = gym.make_vec("iARCS-Bedroom-v0", num_envs=8, vectorization_mode="vector_entry_point", floors=FLOORS,
+                       stats=default_stats("bedroom"), reward=reward, num_steps=STEPS)
+    return PhysicsGradient(DiffusionPolicy(tiny_prior(), num_steps=STEPS), env, verbose=0, learning_rate=1e-2,
+                           minibatch_size=4, samples_per_floor=4, gradient_steps=2, seed=0)
 
+
+def test_physics_gradient_follows_the_task_rewards_gradient(capsys):
+    """With a sandboxed task term in the env's composite reward, the physics gradient raises that reward on its
+    rollouts' x0_hat (weighed high: the tiny prior's rooms overlap by metres^3); without one it has no task; a
+    task program without a gradient (counts here, free space in practice) is said so at the first update."""
     assert make_model(PhysicsGradient).task_reward() is None
     with SandboxedReward(LOW_TOPS) as task:
-        reward = CompositeReward({"task": 100.0}, rewards={"task": task})
-        env = gym.make_vec("iARCS-Bedroom-v0", num_envs=8, vectorization_mode="vector_entry_point", floors=FLOORS,
-                           stats=default_stats("bedroom"), reward=reward, num_steps=STEPS)
-        model = PhysicsGradient(DiffusionPolicy(tiny_prior(), num_steps=STEPS), env, verbose=0, learning_rate=1e-2,
-                                minibatch_size=4, samples_per_floor=4, gradient_steps=2, seed=0)
+        model = task_gradient_model(task)
         assert model.task_reward() == (task, 100.0)
         rollout = model.collect_rollouts()
         first = model.train(rollout)
         for _ in range(15):
             last = model.train(rollout)
-    assert last["task"] > first["task"] + 0.1 and np.isfinite(last["loss"])
+    assert last["task"] > first["task"] + 0.1 and np.isfinite(last["loss"]) and first["task_gradient"] > 0
+    assert "no gradient" not in capsys.readouterr().err
+    with SandboxedReward("def reward(scene):\n    return scene.count('nightstand')\n") as task:
+        model = task_gradient_model(task)
+        assert model.train(model.collect_rollouts())["task_gradient"] == 0
+    assert "warning: the task reward has no gradient" in capsys.readouterr().err
 
 
 @pytest.mark.parametrize("algo", [DDPO, DDPOSF])
