@@ -73,7 +73,7 @@ def task_surrogate(task_reward, x0: torch.Tensor, stats, floors) -> tuple[torch.
 class PhysicsGradient(DDPO):
     """The physics gradient (module doc) with :class:`DDPO`'s surface: ``learn``, ``save``/``load``,
     callbacks. Uses ``learning_rate``, ``minibatch_size``, ``num_inner_epochs``, ``max_grad_norm``,
-    ``gradient_steps`` and ``out_of_bound_weight`` of :class:`~agents.ddpo.DDPOConfig`; the env's reward is
+    ``gradient_steps``, ``out_of_bound_weight`` and ``kl_coef`` of :class:`~agents.ddpo.DDPOConfig`; the env's reward is
     logged, not optimised, but for a stage-2 task reward, whose gradient joins (module doc)."""
 
     name = "PHYSICS-GRADIENT"
@@ -116,6 +116,10 @@ class PhysicsGradient(DDPO):
                     surrogate, values, size = task_surrogate(task[0], x0_hat, venv.stats, floors)
                     loss = loss - task[1] * surrogate / len(floors)
                     info.update(task=values.mean().item(), task_gradient=size / len(floors))
+                if cfg.kl_coef > 0:  # anchored to the reference: what already passes is not pushed further
+                    kl = self.kl_to_base(mb)
+                    loss = loss + cfg.kl_coef * kl
+                    info["kl_to_base"] = float(kl)
                 self.optimizer.zero_grad(set_to_none=True)
                 loss.backward()
                 distributed.average_gradients(self.policy.trainable_parameters())
