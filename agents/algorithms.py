@@ -1,5 +1,6 @@
 """The RL algorithms a training config can name (``algorithm:``), by name: DDPO-IS and DDPO-SF
-(:mod:`agents.ddpo`) and the physics gradient (:mod:`agents.physics_gradient`). Other algorithms plug in by
+(:mod:`agents.ddpo`) and the physics gradient (:mod:`agents.physics_gradient`; in stage 2 it also follows the task
+reward's own gradient, taken in the reward's sandbox). Other algorithms plug in by
 subclassing :class:`agents.ddpo.DDPO` and being added here."""
 
 from __future__ import annotations

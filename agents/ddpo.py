@@ -76,7 +76,7 @@ class DDPOConfig:
     greedy: biased towards improvements the following steps keep)."""
     gradient_steps: int = 4
     """``physics-gradient`` only (agents/physics_gradient.py): the last k stochastic steps whose x0_hat gets the
-    gradient of the physics penalty."""
+    gradient of the physics penalty (and of a stage-2 task reward)."""
     out_of_bound_weight: float = 1.0
     """``physics-gradient`` only: the weight of the out-of-bound area (m^2) next to the overlap volume (m^3)."""
     kl_coef: float = 0.0

@@ -9,8 +9,8 @@ Per stored state x_t of the last ``gradient_steps`` stochastic steps of a rollou
                                 + w_floor sum_{i ground} |bottom_i(x0_hat(x_t))|
 
 with V_ij the overlap volume of the axis-aligned bounds of boxes i and j (exact for axis-aligned furniture, as
-most is, along the walls; its vertical extent carries no gradient: furniture is separated by moving it apart,
-not by flattening it, which an adapter of heights would otherwise do), A_i the area (m^2) of box i's footprint, shrunk by 0.05 m per side as in R_out,
+most is, along the walls; its vertical extent carries no gradient: two objects on the floor overlap in height
+whatever their heights, so flattening them shrinks the number, never the collision), A_i the area (m^2) of box i's footprint, shrunk by 0.05 m per side as in R_out,
 outside the floor polygon, and bottom_i the height (m) of a ground object's bottom above or below the floor;
 w_out is ``out_of_bound_weight``, w_floor the weight of the run's ``floor_contact`` reward (0 without one: an
 adapter that moves objects on the floor only cannot change it). Classes come from x0_hat's arg-max (no gradient), or
