@@ -10,11 +10,12 @@ Per stored state x_t of the last ``gradient_steps`` stochastic steps of a rollou
 
 with V_ij the overlap volume of the axis-aligned bounds of boxes i and j (exact for axis-aligned furniture, as
 most is, along the walls; its vertical extent carries no gradient: two objects on the floor overlap in height
-whatever their heights, so flattening them shrinks the number, never the collision), A_i the area (m^2) of box i's footprint, shrunk by 0.05 m per side as in R_out,
-outside the floor polygon, and bottom_i the height (m) of a ground object's bottom above or below the floor;
-w_out is ``out_of_bound_weight``, w_floor the weight of the run's ``floor_contact`` reward (0 without one: an
-adapter that moves objects on the floor only cannot change it). Classes come from x0_hat's arg-max (no gradient), or
-are the rooms' given ones for an adapter with required objects.
+whatever their heights, so flattening them shrinks the number, never the collision), A_i the area (m^2) of box
+i's footprint, shrunk by 0.05 m per side as in R_out, outside the floor polygon, and bottom_i the height (m) of
+a ground object's bottom above or below the floor; w_out is ``out_of_bound_weight``, w_floor the weight of the
+run's ``floor_contact`` reward (0 without one: an adapter that moves objects on the floor only cannot change it).
+Classes come from x0_hat's arg-max (no gradient), or are the rooms' given ones for an adapter with required
+objects.
 A policy gradient from 32 scenes an epoch has to discover, scene by scene, which way separates two objects;
 this gradient says it for every pair. It uses :class:`~agents.ddpo.DDPO`'s rollouts, evaluation, checkpoints
 and callbacks; only the update differs.
@@ -61,9 +62,10 @@ def physics_penalty(x0: torch.Tensor, stats, floors, out_of_bound_weight: float 
 
 
 def task_surrogate(task_reward, x0: torch.Tensor, stats, floors) -> tuple[torch.Tensor, torch.Tensor, float]:
-    """(surrogate (scalar), values (B,), the gradient's L1 norm): the task reward of the scenes that model features ``x0`` describe,
-    decoded as the environment decodes them (:meth:`SceneBatch.decode`), and a surrogate whose gradient with
-    respect to ``x0`` is that of the values' sum (the sandbox's gradient chained through the decoding)."""
+    """(surrogate (scalar), values (B,), the gradient's L1 norm): the task reward of the scenes that model
+    features ``x0`` describe, decoded as the environment decodes them (:meth:`SceneBatch.decode`), and a surrogate
+    whose gradient with respect to ``x0`` is that of the values' sum (the sandbox's gradient chained through the
+    decoding)."""
     scenes = SceneBatch.decode(x0, stats, list(floors), keep_graph=True)
     values, grad = task_reward.gradient(scenes)  # the sandbox gets the values, detached
     surrogate = sum((grad[key] * getattr(scenes, key)).sum() for key in ("translations", "half_sizes", "yaws"))
@@ -73,8 +75,8 @@ def task_surrogate(task_reward, x0: torch.Tensor, stats, floors) -> tuple[torch.
 class PhysicsGradient(DDPO):
     """The physics gradient (module doc) with :class:`DDPO`'s surface: ``learn``, ``save``/``load``,
     callbacks. Uses ``learning_rate``, ``minibatch_size``, ``num_inner_epochs``, ``max_grad_norm``,
-    ``gradient_steps``, ``out_of_bound_weight`` and ``kl_coef`` of :class:`~agents.ddpo.DDPOConfig`; the env's reward is
-    logged, not optimised, but for a stage-2 task reward, whose gradient joins (module doc)."""
+    ``gradient_steps``, ``out_of_bound_weight`` and ``kl_coef`` of :class:`~agents.ddpo.DDPOConfig`; the env's
+    reward is logged, not optimised, but for a stage-2 task reward, whose gradient joins (module doc)."""
 
     name = "PHYSICS-GRADIENT"
 

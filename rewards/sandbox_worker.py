@@ -331,7 +331,8 @@ def worker_main(config_json: str) -> None:
         if gradient:
             reply["gradient"] = {}
             for key, leaf, g in zip(GEOMETRY, leaves, grads):
-                g = torch.zeros_like(leaf) if g is None else torch.nan_to_num(g.detach(), nan=0.0, posinf=0.0, neginf=0.0)
+                g = (torch.zeros_like(leaf) if g is None
+                     else torch.nan_to_num(g.detach(), nan=0.0, posinf=0.0, neginf=0.0))
                 g[torch.from_numpy(~kept)] = 0
                 reply["gradient"][key] = g.to(torch.float64).numpy().tolist()
         return reply

@@ -237,7 +237,8 @@ def test_physics_gradient_lowers_the_penalty_of_its_rollouts_and_resumes_by_name
         make_model(PhysicsGradient, gradient_steps=0)
 
 
-LOW_TOPS = "def reward(scene):\n    return scene.mean_of(scene.below(scene.top_height, 0.4, scale=0.3), scene.present)\n"
+LOW_TOPS = ("def reward(scene):\n"
+            "    return scene.mean_of(scene.below(scene.top_height, 0.4, scale=0.3), scene.present)\n")
 
 
 def test_task_surrogate_chains_the_sandboxed_programs_gradient_through_the_decoding():
@@ -250,8 +251,8 @@ def test_task_surrogate_chains_the_sandboxed_programs_gradient_through_the_decod
     stats = default_stats("bedroom")
     layouts = [l.centred() for l in generate_layouts("bedroom", 6, seed=2)]
     batch = SceneBatch.from_layouts(layouts)
-    x0 = (batch.encode(stats) + 0.05 * torch.randn(batch.encode(stats).shape, generator=torch.Generator().manual_seed(0)))
-    x0 = x0.requires_grad_(True)
+    x0 = batch.encode(stats)
+    x0 = (x0 + 0.05 * torch.randn(x0.shape, generator=torch.Generator().manual_seed(0))).requires_grad_(True)
     namespace = {"torch": torch, "math": __import__("math")}
     exec(LOW_TOPS, namespace)
     local = namespace["reward"](Scene(SceneBatch.decode(x0, stats, batch.floors, keep_graph=True)))
