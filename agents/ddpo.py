@@ -23,6 +23,7 @@ import torch
 from tensordict import TensorDict
 
 from iarcs_env.env import evaluate_reward
+from iarcs_env.geometry import OUT_OF_BOUND_SHRINK
 from iarcs_env.schedule import ddim_previous
 
 from . import distributed
@@ -77,8 +78,14 @@ class DDPOConfig:
     gradient_steps: int = 4
     """``physics-gradient`` only (agents/physics_gradient.py): the last k stochastic steps whose x0_hat gets the
     gradient of the physics penalty (and of a stage-2 task reward)."""
+    overlap_weight: float = 1.0
+    """``physics-gradient`` only: the weight of the ground objects' overlap volume (m^3)."""
     out_of_bound_weight: float = 1.0
     """``physics-gradient`` only: the weight of the out-of-bound area (m^2) next to the overlap volume (m^3)."""
+    out_of_bound_shrink: float = OUT_OF_BOUND_SHRINK
+    """``physics-gradient`` only: footprints are shrunk by this much (m) per side before their area outside the
+    floor is penalised: R_out's own 0.05 m by default; 0 keeps whole footprints inside, 0.05 m short of R_out's
+    threshold."""
     kl_coef: float = 0.0
     """Weight of a KL penalty to the policy the adapter starts from (its reference adapter, e.g. stage 1 for a
     partial stage-2 adapter; else the prior, adapters disabled), against diversity collapse and drift."""

@@ -180,7 +180,8 @@ def test_gae_lambda_zero_credits_a_step_only_with_its_own_change():
 
 def test_physics_penalty_is_the_overlap_volume_plus_the_out_of_bound_area_and_descends():
     """Axis-aligned boxes, where the bounds' overlap is the exact one: two overlapping boxes in an L-shaped room
-    and one through its notch score what the metrics' geometry measures on the decoded scene, a nightstand
+    and one through its notch score what the metrics' geometry measures on the decoded scene, at the given
+    weights and with footprints shrunk as asked, a nightstand
     lifted 0.2 m adds its gap at the floor weight, and a small step down the penalty's gradient in the model
     features lowers it, moving footprints, never heights or elevations (without a floor weight)."""
     from iarcs_env import geometry as geo
@@ -200,8 +201,12 @@ def test_physics_penalty_is_the_overlap_volume_plus_the_out_of_bound_area_and_de
                                         geo.OUT_OF_BOUND_SHRINK).sum()
     assert volume > 0.05 and outside > 0.05  # both parts are there
     assert penalty.item() == pytest.approx(float(volume + outside), rel=1e-4)
-    weighted = physics_penalty(x0.detach(), stats, batch.floors, out_of_bound_weight=3.0)
-    assert weighted.item() == pytest.approx(float(volume + 3 * outside), rel=1e-4)
+    weighted = physics_penalty(x0.detach(), stats, batch.floors, out_of_bound_weight=3.0, overlap_weight=5.0)
+    assert weighted.item() == pytest.approx(float(5 * volume + 3 * outside), rel=1e-4)
+    whole = geo.box_out_of_floor_area(scene.translations, scene.half_sizes, scene.yaws, scene.floors, scene.mask).sum()
+    assert whole > outside  # the whole footprints stick out further than the shrunk ones
+    unshrunk = physics_penalty(x0.detach(), stats, batch.floors, out_of_bound_shrink=0.0)
+    assert unshrunk.item() == pytest.approx(float(volume + whole), rel=1e-4)
     gap = float(geo.floor_gaps(scene.translations, scene.half_sizes, scene.ground_mask).sum())
     assert gap == pytest.approx(0.2, abs=1e-3)
     lifted = physics_penalty(x0.detach(), stats, batch.floors, floor_weight=10.0)
