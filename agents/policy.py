@@ -305,7 +305,7 @@ class DiffusionPolicy(nn.Module):
         with self.reference_policy():
             first = self.prior.sample(floors, num_steps or self.num_steps, self.eta if eta is None else eta, generator,
                                       batch_size=batch_size, eps_fn=self.eps)
-        return with_required(first.labels, self.prior.spec.classes, required)
+        return with_required(first.labels, self.prior.spec.classes, required, generator)
 
     @torch.no_grad()
     def sample(self, floors: Sequence[FloorPlan], generator: torch.Generator | None = None,

@@ -23,18 +23,22 @@ from .relations import CLASS_GROUPS, class_mask
 @dataclass(frozen=True)
 class RequiredObject:
     """At least ``at_least`` objects of ``classes`` (class names or :data:`relations.CLASS_GROUPS` names) in every
-    room; a room with fewer gets objects of class ``add`` (default: ``classes`` when it names one class)."""
+    room; a room with fewer gets objects of class ``add`` (default: ``classes`` when it names one class). With
+    ``share`` < 1 only that fraction of the rooms, drawn per room, gets what it lacks (one draw per room for all
+    entries: the entries of equal share come together), for a task whose objects in every room would move the
+    class frequencies too far from the data's."""
 
     classes: tuple[str, ...]
     at_least: int = 1
     add: str = ""
+    share: float = 1.0
 
     @classmethod
     def from_dict(cls, value, vocabulary: Sequence[str], where: str = "required_objects") -> "RequiredObject":
         """One entry of a config's ``required_objects``, e.g. ``{classes: bed, at_least: 1, add: double_bed}``,
         checked against the room's class list (``vocabulary``)."""
         example = "{classes: nightstand, at_least: 2} or {classes: bed, add: double_bed}"
-        if not isinstance(value, dict) or set(value) - {"classes", "at_least", "add"} or "classes" not in value:
+        if not isinstance(value, dict) or set(value) - {"classes", "at_least", "add", "share"} or "classes" not in value:
             raise ValueError(f"{where}: expected a mapping like {example}, got {value!r}")
         names = (value["classes"],) if isinstance(value["classes"], str) else tuple(value["classes"])
         if not names or not all(isinstance(n, str) for n in names):
@@ -53,22 +57,32 @@ class RequiredObject:
             raise ValueError(f"{where}: say which class to add to a room short of {'/'.join(names)} (add: CLASS)")
         if add not in vocabulary or not matching[list(vocabulary).index(add)]:
             raise ValueError(f"{where}: add: {add!r} must be a class of this room type that {'/'.join(names)} counts")
-        return cls(names, at_least, add)
+        share = value.get("share", 1.0)
+        if isinstance(share, bool) or not isinstance(share, (int, float)) or not 0 < share <= 1:
+            raise ValueError(f"{where}: share must be a fraction of the rooms in (0, 1], got {share!r}")
+        return cls(names, at_least, add, float(share))
 
     def to_dict(self) -> dict:
-        return {"classes": list(self.classes), "at_least": self.at_least, "add": self.add}
+        return {"classes": list(self.classes), "at_least": self.at_least, "add": self.add, "share": self.share}
 
 
-def with_required(labels: torch.Tensor, vocabulary: Sequence[str], required: Sequence[RequiredObject]) -> torch.Tensor:
+def with_required(labels: torch.Tensor, vocabulary: Sequence[str], required: Sequence[RequiredObject],
+                  generator: torch.Generator | None = None) -> torch.Tensor:
     """(B, N) class indices (``len(vocabulary)``: an empty slot) with the missing required objects put into
     empty slots, in the canonical slot order (sorted by class index, empty slots last). A room with no empty slot
-    left keeps what it has."""
+    left keeps what it has. An entry with ``share`` < 1 fills only the rooms whose uniform draw (one per room,
+    from ``generator``; drawn only when some share is below 1) is below its share."""
     vocabulary = list(vocabulary)
     empty = len(vocabulary)
     out = labels.clone()
+    if any(r.share < 1 for r in required):
+        draw = torch.rand(len(labels), generator=generator,
+                          device=generator.device if generator is not None else "cpu").to(labels.device)
+    else:
+        draw = torch.zeros(len(labels), device=labels.device)
     for req in required:
         have = class_mask(out, vocabulary, req.classes).sum(1)
-        for b in torch.nonzero(have < req.at_least).flatten().tolist():
+        for b in torch.nonzero((have < req.at_least) & (draw < req.share)).flatten().tolist():
             free = torch.nonzero(out[b] == empty).flatten()[:req.at_least - int(have[b])]
             out[b, free] = vocabulary.index(req.add)
     return out.sort(dim=1).values

@@ -37,6 +37,7 @@ def test_entries_parse_with_defaults_and_bad_ones_say_what_to_write():
         "must be a class of this room type that bed counts": {"classes": "bed", "add": "nightstand"},
         "at_least must be a positive whole number": {"classes": "desk", "at_least": 0},
         "expected a mapping like": {"classes": "desk", "count": 2},
+        "share must be a fraction of the rooms": {"classes": "desk", "share": 1.5},
     }
     for message, entry in bad.items():
         with pytest.raises(ValueError, match=message):
@@ -54,6 +55,20 @@ def test_missing_objects_fill_empty_slots_in_the_canonical_order_and_nothing_els
     assert out[1].tolist() == sorted(rooms[1].tolist())
     assert out[2].tolist() == sorted(idx("wardrobe", "double_bed", "nightstand", "nightstand")) + [EMPTY] * 8
     assert out[3].tolist() == rooms[3].tolist()
+
+
+def test_a_share_fills_that_fraction_of_the_rooms_with_all_their_entries_together():
+    needs = [RequiredObject(("desk",), 1, "desk", 0.3), RequiredObject(("chair",), 1, "chair", 0.3)]
+    assert RequiredObject.from_dict({"classes": "desk", "share": 0.3}, CLASSES) == needs[0]
+    rooms = torch.full((2000, 12), EMPTY)
+    rooms[:, 0] = idx("double_bed")[0]
+    out = with_required(rooms, CLASSES, needs, torch.Generator().manual_seed(0))
+    desk, chair = counts(out, "desk"), counts(out, "chair")
+    assert (desk == chair).all()  # one draw per room: the desk and its chair come together
+    assert 0.27 < desk.float().mean() < 0.33
+    again = with_required(rooms, CLASSES, needs, torch.Generator().manual_seed(0))
+    assert torch.equal(out, again)
+    assert (counts(out, "double_bed") == 1).all()  # nothing else changes
 
 
 def test_given_classes_are_what_the_network_sees_noised_to_t_and_what_the_scenes_hold():
