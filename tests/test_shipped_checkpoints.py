@@ -36,9 +36,9 @@ def sample(room: str, adapter: str | None) -> dict:
         batch = ScenePrior.load_default(room).sample(floors, generator=generator)
     elif adapter == "stage1":
         batch = load_stage1_policy(room).sample(floors, generator=generator)
-    else:  # a task adapter, loaded as `iarcs sample --adapter TASK` loads it
-        prior, policy = load_sampler(str(shipped_adapter_path(room, adapter)), room)
-        batch = prior.sample(floors, generator=generator, eps_fn=policy.eps)
+    else:  # a task adapter, loaded and sampled as `iarcs sample --adapter TASK` does (its objects given, if any)
+        _, policy = load_sampler(str(shipped_adapter_path(room, adapter)), room)
+        batch = policy.sample(floors, generator=generator)
     return {"labels": [lay.labels for lay in batch.to_layouts()],
             "geometry": [np.concatenate([lay.translations, lay.half_sizes, lay.yaws[:, None]], 1).round(6).tolist()
                          for lay in batch.to_layouts()]}
