@@ -3,13 +3,14 @@ scenes by rejection sampling from the prior (``iarcs sample --satisfying TASK``)
 adapter and then sampling from it (training included), and how diverse the passing scenes are both ways (SCA
 of their renders against the data rooms that pass the same checker; 50% = indistinguishable).
 
-    .venv/bin/python experiments/cost_table.py --work out/cost [--scenes 1000 4000] [--tasks reach_1m ...]
+    .venv/bin/python experiments/cost_table.py --work out/cost [--scenes 1000 4000] [--tasks reach_1m ...] [--ways prior]
 
 Floors and data rooms: ``iarcs data generate --room bedroom --num-scenes MAX --seed 777``; N scenes use its first
 N floors. Both ways sample those floors with ``--satisfying`` (``--max-draws``, seed 0), timed as the commands
 run (model loading included), on the threads OMP_NUM_THREADS allows. An adapter's training time is its run's
 TensorBoard span (the shipped adapter's ``training.json``); a task without a shipped adapter has rejection rows
-only. Writes WORK/cost.json and WORK/cost.md, keeping the rows of earlier calls it did not measure again.
+only. Writes WORK/cost.json and WORK/cost.md after every row, keeping the rows of earlier calls it did not measure
+again.
 """
 
 from __future__ import annotations
@@ -83,6 +84,8 @@ def main() -> None:
     parser.add_argument("--tasks", nargs="+", default=[t for t in TASKS if TASKS[t].room == "bedroom"],
                         help="paper tasks (default: every bedroom task)")
     parser.add_argument("--max-draws", type=int, default=50, help="draws per floor plan (default 50)")
+    parser.add_argument("--ways", nargs="+", choices=["prior", "adapter"], default=["prior", "adapter"],
+                        help="rejection from the prior, from the shipped adapter, or both (default)")
     args = parser.parse_args()
 
     args.work.mkdir(parents=True, exist_ok=True)
@@ -93,7 +96,17 @@ def main() -> None:
     data = load_layouts(floors, "bedroom")
     if len(data) < max(args.scenes):
         sys.exit(f"{floors} holds {len(data)} rooms, fewer than --scenes asks; delete it to generate {max(args.scenes)}")
-    rows = []
+    table = args.work / "cost.json"
+
+    def record(row: dict) -> None:
+        """Add ``row`` to the table at once (a later crash keeps it), replacing an earlier measurement of it."""
+        key = lambda r: (r["task"], r["scenes"], r["way"])  # noqa: E731
+        rows = [r for r in (json.loads(table.read_text()) if table.exists() else []) if key(r) != key(row)] + [row]
+        rows.sort(key=lambda r: (list(TASKS).index(r["task"]), r["scenes"], r["way"] != "prior"))
+        table.write_text(json.dumps(rows, indent=1))
+        (args.work / "cost.md").write_text(markdown(rows))
+        print(markdown([row]), flush=True)
+
     for task in args.tasks:
         reference = [r for r, ok in zip(data, task_results(task, data)) if ok]
         adapter, seconds = None, None
@@ -101,18 +114,11 @@ def main() -> None:
             adapter = ["--adapter", task]
             seconds = json.loads((shipped_task_dir("bedroom", task) / "training.json").read_text())["train_seconds"]
         for n in args.scenes:
-            rows.append(measure(task, n, floors, reference, args.work, args.max_draws, None, None))
-            if adapter:
-                rows.append(measure(task, n, floors, reference, args.work, args.max_draws, adapter, seconds))
-            print(markdown(rows[-2:] if adapter else rows[-1:]), flush=True)
-    table = args.work / "cost.json"  # rows of earlier calls stay, unless this call measured them again
-    key = lambda r: (r["task"], r["scenes"], r["way"])  # noqa: E731
-    done = {key(r) for r in rows}
-    rows = sorted([r for r in (json.loads(table.read_text()) if table.exists() else []) if key(r) not in done] + rows,
-                  key=lambda r: (list(TASKS).index(r["task"]), r["scenes"], r["way"] != "prior"))
-    table.write_text(json.dumps(rows, indent=1))
-    (args.work / "cost.md").write_text(markdown(rows))
-    print(markdown(rows))
+            if "prior" in args.ways:
+                record(measure(task, n, floors, reference, args.work, args.max_draws, None, None))
+            if adapter and "adapter" in args.ways:
+                record(measure(task, n, floors, reference, args.work, args.max_draws, adapter, seconds))
+    print(markdown(json.loads(table.read_text())) if table.exists() else "nothing measured")
 
 
 if __name__ == "__main__":
