@@ -1,0 +1,72 @@
+"""Why tv_from_bed fails: its success by how far the bed's centre is from the wall it faces (the floor polygon
+along the bed's forward ray), for each scene file's first bed-TV stand pair.
+
+    .venv/bin/python research/tv_bed_facing.py NAME=S.json [NAME=S.json ...]
+
+A room whose bed faces a wall less than about 2.3 m away cannot pass by moving furniture (TV stand centre 2 m
+from the bed's, inside the room): only a bed turned towards the room's long side can.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import sys
+from pathlib import Path
+
+import numpy as np
+from shapely.geometry import LineString, Polygon
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from iarcs_env.datasets import load_layouts  # noqa: E402
+from iarcs_env.tasks import task_results  # noqa: E402
+
+BANDS = [(0.0, 2.0), (2.0, 2.3), (2.3, 2.6), (2.6, 3.0), (3.0, math.inf)]
+
+
+def room_ahead(layout) -> float | None:
+    """Metres of floor ahead of the room's first bed (from its centre along its forward direction), None
+    without a bed and a TV stand."""
+    beds = [i for i, c in enumerate(layout.labels) if c.endswith("bed")]
+    if not beds or "tv_stand" not in layout.labels:
+        return None
+    i = beds[0]
+    x, z, yaw = float(layout.translations[i, 0]), float(layout.translations[i, 2]), float(layout.yaws[i])
+    ray = LineString([(x, z), (x + 20 * math.sin(yaw), z + 20 * math.cos(yaw))])
+    inside = ray.intersection(Polygon(np.asarray(layout.floor.vertices)))
+    return 0.0 if inside.is_empty else float(inside.length)
+
+
+def bands(layouts) -> list[tuple[float, float, int, float]]:
+    """(from m, to m, rooms, success) per band of the floor ahead of the bed."""
+    ok = task_results("tv_from_bed", layouts).astype(bool)
+    ahead = [room_ahead(lay) for lay in layouts]
+    rows = []
+    for lo, hi in BANDS:
+        pick = [k for k, a in enumerate(ahead) if a is not None and lo <= a < hi]
+        rows.append((lo, hi, len(pick), float(ok[pick].mean()) if pick else float("nan")))
+    return rows
+
+
+def long_side(layout) -> float:
+    """The longer side (m) of the floor's smallest enclosing rectangle."""
+    x, z = Polygon(np.asarray(layout.floor.vertices)).minimum_rotated_rectangle.exterior.xy
+    return float(np.hypot(np.diff(x), np.diff(z))[:2].max())
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("files", nargs="+", help="NAME=FILE: bedroom scene files")
+    for item in parser.parse_args().files:
+        name, _, path = item.rpartition("=")
+        layouts = load_layouts(path, "bedroom")
+        print(f"{name or path}: tv_from_bed {task_results('tv_from_bed', layouts).mean():.1%}")
+        for lo, hi, n, rate in bands(layouts):
+            print(f"  floor ahead of the bed {lo:.1f}-{hi:.1f} m: {n} rooms, {rate:.0%} pass")
+        long = np.mean([long_side(lay) >= 3.3 for lay in layouts])
+        print(f"  floors 3.3 m long or more one way (a bed against a wall, a TV stand 2 m ahead): {long:.0%}")
+
+
+if __name__ == "__main__":
+    main()
