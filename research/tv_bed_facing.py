@@ -25,6 +25,13 @@ from iarcs_env.tasks import task_results  # noqa: E402
 BANDS = [(0.0, 2.0), (2.0, 2.3), (2.3, 2.6), (2.6, 3.0), (3.0, math.inf)]
 
 
+def bed_tv_distance(layout) -> float:
+    """Centre distance (m, on the floor) of the room's first bed and first TV stand."""
+    i = next(k for k, c in enumerate(layout.labels) if c.endswith("bed"))
+    j = layout.labels.index("tv_stand")
+    return float(np.hypot(*(layout.translations[i, 0:3:2] - layout.translations[j, 0:3:2])))
+
+
 def room_ahead(layout) -> float | None:
     """Metres of floor ahead of the room's first bed (from its centre along its forward direction), None
     without a bed and a TV stand."""
@@ -38,14 +45,17 @@ def room_ahead(layout) -> float | None:
     return 0.0 if inside.is_empty else float(inside.length)
 
 
-def bands(layouts) -> list[tuple[float, float, int, float]]:
-    """(from m, to m, rooms, success) per band of the floor ahead of the bed."""
+def bands(layouts) -> list[tuple[float, float, int, float, int, int]]:
+    """(from m, to m, rooms, success, failing rooms with the TV stand under 2 m, over 4 m) per band of the floor
+    ahead of the bed."""
     ok = task_results("tv_from_bed", layouts).astype(bool)
     ahead = [room_ahead(lay) for lay in layouts]
     rows = []
     for lo, hi in BANDS:
         pick = [k for k, a in enumerate(ahead) if a is not None and lo <= a < hi]
-        rows.append((lo, hi, len(pick), float(ok[pick].mean()) if pick else float("nan")))
+        gaps = [bed_tv_distance(layouts[k]) for k in pick if not ok[k]]
+        rows.append((lo, hi, len(pick), float(ok[pick].mean()) if pick else float("nan"),
+                     sum(g < 2 for g in gaps), sum(g > 4 for g in gaps)))
     return rows
 
 
@@ -62,8 +72,9 @@ def main() -> None:
         name, _, path = item.rpartition("=")
         layouts = load_layouts(path, "bedroom")
         print(f"{name or path}: tv_from_bed {task_results('tv_from_bed', layouts).mean():.1%}")
-        for lo, hi, n, rate in bands(layouts):
-            print(f"  floor ahead of the bed {lo:.1f}-{hi:.1f} m: {n} rooms, {rate:.0%} pass")
+        for lo, hi, n, rate, near, far in bands(layouts):
+            print(f"  floor ahead of the bed {lo:.1f}-{hi:.1f} m: {n} rooms, {rate:.0%} pass; of the failing, "
+                  f"TV stand under 2 m {near}, over 4 m {far}")
         long = np.mean([long_side(lay) >= 3.3 for lay in layouts])
         print(f"  floors 3.3 m long or more one way (a bed against a wall, a TV stand 2 m ahead): {long:.0%}")
 
