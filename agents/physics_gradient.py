@@ -13,10 +13,9 @@ most is, along the walls; its vertical extent carries no gradient: two objects o
 whatever their heights, so flattening them shrinks the number, never the collision), A_i the area (m^2) of box
 i's footprint, shrunk by ``out_of_bound_shrink`` per side (R_out's 0.05 m by default), outside the floor polygon,
 and bottom_i the height (m) of a ground object's bottom above or below the floor; w_vol is ``overlap_weight``
-(1 by default), w_out ``out_of_bound_weight``, w_floor the weight of the
-run's ``floor_contact`` reward (0 without one: an adapter that moves objects on the floor only cannot change it).
-Classes come from x0_hat's arg-max (no gradient), or are the rooms' given ones for an adapter with required
-objects.
+(1 by default), w_out ``out_of_bound_weight``, w_floor the weight of the run's ``floor_contact`` reward (0 without
+one: an adapter that moves objects on the floor only cannot change it). Classes come from x0_hat's arg-max (no
+gradient), or are the rooms' given ones for an adapter with required objects.
 A policy gradient from 32 scenes an epoch has to discover, scene by scene, which way separates two objects;
 this gradient says it for every pair. It uses :class:`~agents.ddpo.DDPO`'s rollouts, evaluation, checkpoints
 and callbacks; only the update differs.
@@ -77,8 +76,9 @@ def task_surrogate(task_reward, x0: torch.Tensor, stats, floors) -> tuple[torch.
 class PhysicsGradient(DDPO):
     """The physics gradient (module doc) with :class:`DDPO`'s surface: ``learn``, ``save``/``load``,
     callbacks. Uses ``learning_rate``, ``minibatch_size``, ``num_inner_epochs``, ``max_grad_norm``,
-    ``gradient_steps``, ``overlap_weight``, ``out_of_bound_weight``, ``out_of_bound_shrink`` and ``kl_coef`` of :class:`~agents.ddpo.DDPOConfig`; the env's
-    reward is logged, not optimised, but for a stage-2 task reward, whose gradient joins (module doc)."""
+    ``gradient_steps``, ``overlap_weight``, ``out_of_bound_weight``, ``out_of_bound_shrink`` and ``kl_coef`` of
+    :class:`~agents.ddpo.DDPOConfig`; the env's reward is logged, not optimised, but for a stage-2 task reward, whose
+    gradient joins (module doc)."""
 
     name = "PHYSICS-GRADIENT"
 
@@ -114,8 +114,9 @@ class PhysicsGradient(DDPO):
                 floors = [venv.floors[int(i)] for i in mb["floor_index"]]
                 x0_hat = self.policy.predict_x0(mb["x_t"], mb["t"], mb["floor"], mb.get("classes", None))
                 x0_hat = x0_hat.cpu()
-                loss = physics_penalty(x0_hat, venv.stats, floors, cfg.out_of_bound_weight, floor_weight,
-                                       cfg.overlap_weight, cfg.out_of_bound_shrink).mean()
+                loss = physics_penalty(x0_hat, venv.stats, floors, out_of_bound_weight=cfg.out_of_bound_weight,
+                                       floor_weight=floor_weight, overlap_weight=cfg.overlap_weight,
+                                       out_of_bound_shrink=cfg.out_of_bound_shrink).mean()
                 info = {"physics": loss.item()}
                 if task is not None:
                     surrogate, values, size = task_surrogate(task[0], x0_hat, venv.stats, floors)

@@ -3,7 +3,8 @@ scenes by rejection sampling from the prior (``iarcs sample --satisfying TASK``)
 adapter and then sampling from it (training included), and how diverse the passing scenes are both ways (SCA
 of their renders against the data rooms that pass the same checker; 50% = indistinguishable).
 
-    .venv/bin/python experiments/cost_table.py --work out/cost [--scenes 1000 4000] [--tasks reach_1m ...] [--ways prior]
+    .venv/bin/python experiments/cost_table.py --work out/cost [--scenes 1000 4000] [--tasks reach_1m ...]
+        [--ways prior adapter]
 
 Floors and data rooms: ``iarcs data generate --room bedroom --num-scenes MAX --seed 777``; N scenes use its first
 N floors. Both ways sample those floors with ``--satisfying`` (``--max-draws``, seed 0), timed as the commands

@@ -38,7 +38,8 @@ class RequiredObject:
         """One entry of a config's ``required_objects``, e.g. ``{classes: bed, at_least: 1, add: double_bed}``,
         checked against the room's class list (``vocabulary``)."""
         example = "{classes: nightstand, at_least: 2} or {classes: bed, add: double_bed}"
-        if not isinstance(value, dict) or set(value) - {"classes", "at_least", "add", "share"} or "classes" not in value:
+        keys = {"classes", "at_least", "add", "share"}
+        if not isinstance(value, dict) or set(value) - keys or "classes" not in value:
             raise ValueError(f"{where}: expected a mapping like {example}, got {value!r}")
         names = (value["classes"],) if isinstance(value["classes"], str) else tuple(value["classes"])
         if not names or not all(isinstance(n, str) for n in names):
