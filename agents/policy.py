@@ -117,7 +117,9 @@ class DiffusionPolicy(nn.Module):
     def add_adapter(self, name: str, init_from: str | None = None, adapted=(), required=()) -> None:
         """A new adapter (zero-initialised B, so the policy starts as the prior), or a copy of ``init_from``.
         ``adapted``: its feature groups (empty: those of ``init_from``, or all). The features it does not
-        adapt follow ``init_from`` (kept frozen, and saved with it), or the prior. ``required``: the
+        adapt follow ``init_from`` (kept frozen, and saved with it), or the prior; ``init_from``'s own reference
+        when ``init_from`` adapts the same features (a second training phase of a task adapter: the same mix,
+        one network pass less a step). ``required``: the
         :class:`RequiredObject` s of its task (its rooms' classes are then given: it must not adapt ``class``)."""
         self.model.add_adapter(name, self.lora_config)
         self.adapted[name] = check_feature_groups(adapted or (self.adapted[init_from] if init_from else ()))
@@ -125,7 +127,10 @@ class DiffusionPolicy(nn.Module):
             raise ValueError("an adapter with required objects samples its rooms' classes given, so it cannot adapt "
                              "them: leave class out of adapt")
         self.required[name] = tuple(required)
-        self.references[name] = init_from if len(self.adapted[name]) < len(FEATURE_GROUPS) else None
+        reference = init_from if len(self.adapted[name]) < len(FEATURE_GROUPS) else None
+        if reference is not None and self.references.get(init_from) and self.adapted[init_from] == self.adapted[name]:
+            reference = self.references[init_from]  # init_from leaves the same features to its own reference
+        self.references[name] = reference
         if init_from is not None:
             src = {k: v for k, v in self.model.state_dict().items() if f".{init_from}." in k}
             self.model.load_state_dict({k.replace(f".{init_from}.", f".{name}."): v for k, v in src.items()},

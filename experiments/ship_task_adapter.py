@@ -1,7 +1,8 @@
 """Ship a paper task's stage-2 adapter from an ``iarcs train`` run: its exported LoRA weights in float16 (half the
 size; the samples keep their classes and move by under 4 mm), the reward program it was trained with and the task's
 prompt, laid out as an ``iarcs generate`` library entry in ``agents/checkpoints/<room>_small_tasks/<task>/``, with
-``training.json``: the run's epochs and training time (what ``experiments/cost_table.py`` charges an adapter).
+``training.json``: the run's epochs and training time, with those of the run it continued, if any (what
+``experiments/cost_table.py`` charges an adapter).
 
     .venv/bin/python experiments/ship_task_adapter.py out/train/t41_two_nightstands
 """
@@ -28,6 +29,16 @@ def train_seconds(run_dir: Path) -> float:
     return total
 
 
+def training_runs(run_dir: Path) -> list[Path]:
+    """The runs an adapter was trained through, first to last: a run whose ``init_adapter`` is another run's
+    exported adapter (``RUN/adapters/NAME``) continues that run (a second phase)."""
+    from agents.train import ADAPTERS_DIR, load_train_config
+
+    init = Path(load_train_config(run_dir / "config.yaml").init_adapter or ".")
+    earlier = init.parents[1] if len(init.parents) > 1 and init.parent.name == ADAPTERS_DIR else None
+    return (training_runs(earlier) if earlier and (earlier / "config.yaml").exists() else []) + [run_dir]
+
+
 def ship(run_dir: Path) -> Path:
     from safetensors.torch import load_file, save_file
 
@@ -48,7 +59,11 @@ def ship(run_dir: Path) -> Path:
         card.unlink()
     shutil.copytree(run_dir / "reward", dest / "reward")
     (dest / "constraint.txt").write_text(task.prompt + "\n")
-    training = {"run": str(run_dir), "epochs": cfg.epochs, "train_seconds": round(train_seconds(run_dir), 1)}
+    runs = training_runs(run_dir)
+    training = {"run": str(run_dir), "epochs": sum(load_train_config(r / "config.yaml").epochs for r in runs),
+                "train_seconds": round(sum(train_seconds(r) for r in runs), 1)}
+    if len(runs) > 1:
+        training["phases"] = [str(r) for r in runs]
     (dest / "training.json").write_text(json.dumps(training, indent=1) + "\n")
     return dest
 

@@ -234,3 +234,16 @@ def test_a_resumed_runs_training_time_leaves_out_the_pause(tmp_path):
         writer.close()
         time.sleep(1.0)
     assert 0.2 <= train_seconds(tmp_path) < 1.0
+
+
+def test_a_second_phase_is_charged_with_the_run_it_continues(tmp_path):
+    """A run whose init_adapter is another run's exported adapter continues it: both are its training runs, first
+    to last; a run from the shipped stage-1 adapter has only itself."""
+    from experiments.ship_task_adapter import training_runs
+
+    first, second, fresh = tmp_path / "phase1", tmp_path / "phase2", tmp_path / "fresh"
+    for run, init in ((first, "default"), (second, str(first / "adapters" / "reach_1m")), (fresh, "default")):
+        run.mkdir()
+        (run / "config.yaml").write_text(f"room: bedroom\nadapter: reach_1m\ninit_adapter: {init}\nepochs: 3\n")
+    assert training_runs(second) == [first, second]
+    assert training_runs(fresh) == [fresh]
