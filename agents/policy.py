@@ -34,6 +34,7 @@ from peft import LoraConfig, PeftModel, get_peft_model
 from torch import nn
 
 from iarcs_env.floorplan import FloorPlan
+from iarcs_env.relations import class_mask
 from iarcs_env.required_objects import RequiredObject, with_required
 from iarcs_env.scene import SceneBatch
 from iarcs_env.schedule import ddim_previous, gaussian_log_prob, standard_normal
@@ -107,6 +108,9 @@ class DiffusionPolicy(nn.Module):
         """adapter -> the adapter its non-adapted features follow (None: the prior)."""
         self.required: dict[str, tuple[RequiredObject, ...]] = {adapter: ()}
         """adapter -> the objects its task needs in every room (:mod:`iarcs_env.required_objects`)."""
+        self.adapted_classes: dict[str, tuple[str, ...]] = {adapter: ()}
+        """adapter -> the classes or class groups whose objects it changes (empty: all); the rest follow its
+        reference."""
         self._adapters_off = False
 
     # --- adapters ---------------------------------------------------------------------------------------
@@ -114,19 +118,24 @@ class DiffusionPolicy(nn.Module):
     def adapter(self) -> str:
         return self.model.active_adapter
 
-    def add_adapter(self, name: str, init_from: str | None = None, adapted=(), required=()) -> None:
+    def add_adapter(self, name: str, init_from: str | None = None, adapted=(), required=(),
+                    adapted_classes=()) -> None:
         """A new adapter (zero-initialised B, so the policy starts as the prior), or a copy of ``init_from``.
         ``adapted``: its feature groups (empty: those of ``init_from``, or all). The features it does not
         adapt follow ``init_from`` (kept frozen, and saved with it), or the prior; ``init_from``'s own reference
         when ``init_from`` adapts the same features (a second training phase of a task adapter: the same mix,
         one network pass less a step). ``required``: the
-        :class:`RequiredObject` s of its task (its rooms' classes are then given: it must not adapt ``class``)."""
+        :class:`RequiredObject` s of its task (its rooms' classes are then given: it must not adapt ``class``).
+        ``adapted_classes``: the classes or class groups whose objects it changes (empty: those of ``init_from``,
+        or all); the other objects follow the reference. Needs ``required`` (the rooms' classes given)."""
         self.model.add_adapter(name, self.lora_config)
         self.adapted[name] = check_feature_groups(adapted or (self.adapted[init_from] if init_from else ()))
         if required and "class" in self.adapted[name]:
             raise ValueError("an adapter with required objects samples its rooms' classes given, so it cannot adapt "
                              "them: leave class out of adapt")
         self.required[name] = tuple(required)
+        self.adapted_classes[name] = self._check_classes(
+            adapted_classes or (self.adapted_classes.get(init_from, ()) if init_from else ()), name)
         reference = init_from if len(self.adapted[name]) < len(FEATURE_GROUPS) else None
         if reference is not None and self.references.get(init_from) and self.adapted[init_from] == self.adapted[name]:
             reference = self.references[init_from]  # init_from leaves the same features to its own reference
@@ -136,6 +145,22 @@ class DiffusionPolicy(nn.Module):
             self.model.load_state_dict({k.replace(f".{init_from}.", f".{name}."): v for k, v in src.items()},
                                        strict=False)
         self.set_adapter(name)
+
+    def _check_classes(self, names, adapter: str) -> tuple[str, ...]:
+        """``names`` (classes or class groups an adapter changes) checked against the room and the adapter."""
+        names = tuple(names)
+        if names:
+            if not self.required.get(adapter):
+                raise ValueError("adapting only some classes' objects needs the rooms' classes given: add "
+                                 "required_objects (e.g. [{classes: support_surface, add: nightstand}])")
+            if not self.class_filter(names).any():
+                raise ValueError(f"adapt_classes {list(names)} names no object class of a {self.prior.spec.name}")
+        return names
+
+    def class_filter(self, names: Sequence[str]) -> torch.Tensor:
+        """(K + 1,) bool over the room's class indices and ``empty``: True for the classes ``names`` covers."""
+        classes = self.prior.spec.classes
+        return class_mask(torch.arange(len(classes) + 1)[None], classes, names)[0]
 
     def set_adapter(self, name: str) -> None:
         self.model.set_adapter(name)
@@ -150,7 +175,8 @@ class DiffusionPolicy(nn.Module):
         if reference is not None:
             reference = self.save_adapter(path / REFERENCE_DIR, reference).name
         (path / ADAPTED_FILE).write_text(json.dumps({"adapted": list(self.adapted[name]), "reference": reference,
-                                                     "required_objects": [r.to_dict() for r in self.required[name]]}))
+                                                     "required_objects": [r.to_dict() for r in self.required[name]],
+                                                     "adapted_classes": list(self.adapted_classes[name])}))
         return path
 
     def load_adapter(self, folder: str | Path, name: str | None = None) -> str:
@@ -170,6 +196,7 @@ class DiffusionPolicy(nn.Module):
         self.references[name] = reference
         self.required[name] = tuple(RequiredObject.from_dict(r, self.prior.spec.classes, f"{folder / ADAPTED_FILE}")
                                     for r in meta.get("required_objects", ()))
+        self.adapted_classes[name] = self._check_classes(meta.get("adapted_classes", ()), name)
         self.set_adapter(name)
         return name
 
@@ -236,8 +263,11 @@ class DiffusionPolicy(nn.Module):
         with self._using(name):
             eps = self.model(x_t, t, floor=floor, floor_context=floor_context)
         keep = self.reference_features(name)
-        if keep is None or self._adapters_off:
+        only = self.adapted_classes.get(name) if classes is not None else ()
+        if (keep is None and not only) or self._adapters_off:
             return eps
+        if keep is None:
+            keep = torch.zeros(self.prior.spec.feature_dim, dtype=torch.bool)
         reference = self.references.get(name)
         with torch.no_grad():
             if reference is None:
@@ -248,7 +278,10 @@ class DiffusionPolicy(nn.Module):
         keep = keep.to(eps.device).expand_as(eps)
         if classes is not None:
             # slots given empty stay the reference's: their geometry is never scored, so adapting it is noise
-            keep = keep | (classes == self.prior.spec.empty_index).to(keep.device)[..., None]
+            fixed = classes == self.prior.spec.empty_index
+            if only:  # objects of the classes it does not change: the reference's too
+                fixed = fixed | ~self.class_filter(only).to(classes.device)[classes]
+            keep = keep | fixed.to(keep.device)[..., None]
         elif "class" not in self.adapted[name] and not self.required.get(name):
             # slots the reference leaves empty stay the reference's
             predicted = self.schedule.predict_x0(x_t, t, base)[..., FEATURE_GROUPS["class"]]

@@ -49,6 +49,10 @@ class TrainConfig:
     ``[{classes: bed, add: double_bed}, {classes: nightstand, at_least: 2}]``: each room is sampled by
     ``init_adapter`` first, the objects it lacks are added to its class list, and the adapter samples the room again
     with those classes given (it must not adapt ``class``). Saved with the adapter, so its samples hold them too."""
+    adapt_classes: list = field(default_factory=list)
+    """Classes or class groups (iarcs_env.relations.CLASS_GROUPS) whose objects the adapter changes, e.g.
+    ``[support_surface]``; the other objects follow ``init_adapter`` (with ``required_objects``, which gives the
+    rooms' classes). Empty: every object, or with ``init_adapter`` the objects that adapter changes."""
     algorithm: str = "ddpo"
     """ddpo (= ddpo-is), ddpo-sf or physics-gradient (agents/physics_gradient.py)."""
     num_envs: int = 32
@@ -116,6 +120,10 @@ class TrainConfig:
         if self.required_objects and "class" in self.adapt:
             raise ValueError("required_objects gives the rooms' classes, so adapt cannot hold class: use e.g. "
                              "adapt: [translation, size, yaw]")
+        if self.adapt_classes and not self.required_objects:
+            raise ValueError("adapt_classes needs required_objects (the rooms' classes given, e.g. "
+                             "[{classes: support_surface, add: nightstand}]): without them the adapter decides "
+                             "which object a slot holds")
         self.required()  # checked here, so a bad entry fails when the config is read
 
     def required(self) -> list:
@@ -171,7 +179,8 @@ def build(cfg: TrainConfig, tensorboard_log: Path | None = None, task_reward=Non
     if cfg.init_adapter:  # the trained adapter starts as a copy of init_adapter
         path = stage1_adapter_path(cfg.room) if cfg.init_adapter == "default" else cfg.init_adapter
         src = policy.load_adapter(path, name="init")
-        policy.add_adapter(cfg.adapter, init_from=src, adapted=cfg.adapt, required=cfg.required())
+        policy.add_adapter(cfg.adapter, init_from=src, adapted=cfg.adapt, required=cfg.required(),
+                           adapted_classes=cfg.adapt_classes)
         policy.model.delete_adapter("scratch")
     policy.to(distributed.setup(cfg.device))  # before the optimiser is made over its parameters
     if task_reward is None:

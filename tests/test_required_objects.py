@@ -192,3 +192,34 @@ def test_a_config_checks_its_required_objects_when_read():
         TrainConfig(init_adapter="default", required_objects=entry, adapt=["position", "class"])
     with pytest.raises(ValueError, match=r"required_objects\[0\]: dining_table names no object class of this room"):
         TrainConfig(init_adapter="default", required_objects=[{"classes": "dining_table"}])
+
+
+def test_an_adapter_of_some_classes_leaves_the_other_objects_to_its_reference_and_keeps_them_when_saved(tmp_path):
+    """reach_1m's adapter lowers support surfaces; without the class filter it lowered the lamps as well."""
+    policy = DiffusionPolicy(tiny_prior(), adapter="stage1", num_steps=STEPS, adapted=("elevation", "height"))
+    policy.add_adapter("task", init_from="stage1", required=NEEDS, adapted_classes=["bed", "nightstand"])
+    perturb(policy, "task", 0)
+    classes = policy.required_classes(FLOORS, torch.Generator().manual_seed(1))
+    beds = class_mask(classes, CLASSES, ["bed", "nightstand"])
+    others = ~beds & (classes != EMPTY)
+    assert beds.any() and others.any()
+    x = torch.randn(len(FLOORS), policy.prior.num_slots, policy.prior.spec.feature_dim,
+                    generator=torch.Generator().manual_seed(2))
+    t, floor = torch.full((len(FLOORS),), 300), policy.prior.floor_condition(FLOORS)
+    with torch.no_grad():
+        task, stage1 = policy.eps(x, t, floor, classes=classes), policy.eps(x, t, floor, adapter="stage1")
+    assert torch.equal(task[others], stage1[others])  # the other objects: the reference's, every feature
+    moved = (task - stage1).abs()[beds]
+    assert moved[:, [1, 4]].min() > 0 and moved[:, [0, 2, 3, 5, 6, 7]].max() == 0  # beds: elevation and height
+    folder = policy.save_adapter(tmp_path)
+    assert json.loads((folder / ADAPTED_FILE).read_text())["adapted_classes"] == ["bed", "nightstand"]
+    loaded = DiffusionPolicy(tiny_prior(), adapter="scratch", num_steps=STEPS)
+    loaded.load_adapter(folder, "task")
+    loaded.add_adapter("phase2", init_from="task", required=NEEDS)  # a second phase keeps the filter
+    assert loaded.adapted_classes["task"] == loaded.adapted_classes["phase2"] == ("bed", "nightstand")
+    with pytest.raises(ValueError, match="needs the rooms' classes given"):
+        policy.add_adapter("bad", init_from="stage1", adapted_classes=["bed"])
+    with pytest.raises(ValueError, match="names no object class of a bedroom"):
+        policy.add_adapter("bad2", init_from="stage1", required=NEEDS, adapted_classes=["dining_table"])
+    with pytest.raises(ValueError, match="adapt_classes needs required_objects"):
+        TrainConfig(init_adapter="default", adapt_classes=["support_surface"])
