@@ -86,9 +86,6 @@ class DDPOConfig:
     """``physics-gradient`` only: footprints are shrunk by this much (m) per side before their area outside the
     floor is penalised: R_out's own 0.05 m by default; 0 keeps whole footprints inside, 0.05 m short of R_out's
     threshold."""
-    ceiling_weight: float = 0.0
-    """``physics-gradient`` only: the weight of how far (m) the lamps' tops hang below the lowest ceiling (2.6 m),
-    which holds them up when the adapter changes heights and elevations."""
     kl_coef: float = 0.0
     """Weight of a KL penalty to the policy the adapter starts from (its reference adapter, e.g. stage 1 for a
     partial stage-2 adapter; else the prior, adapters disabled), against diversity collapse and drift."""

@@ -7,7 +7,6 @@ Per stored state x_t of the last ``gradient_steps`` stochastic steps of a rollou
 
     loss = mean over scenes of  w_vol sum_{i<j ground} V_ij(x0_hat(x_t)) + w_out sum_i A_i(x0_hat(x_t))
                                 + w_floor sum_{i ground} |bottom_i(x0_hat(x_t))|
-                                + w_ceiling sum_{i hanging} max(0, 2.6 - top_i(x0_hat(x_t)))
 
 with V_ij the overlap volume of the axis-aligned bounds of boxes i and j (exact for axis-aligned furniture, as
 most is, along the walls; its vertical extent carries no gradient: two objects on the floor overlap in height
@@ -15,9 +14,7 @@ whatever their heights, so flattening them shrinks the number, never the collisi
 i's footprint, shrunk by ``out_of_bound_shrink`` per side (R_out's 0.05 m by default), outside the floor polygon,
 and bottom_i the height (m) of a ground object's bottom above or below the floor; w_vol is ``overlap_weight``
 (1 by default), w_out ``out_of_bound_weight``, w_floor the weight of the run's ``floor_contact`` reward (0 without
-one: an adapter that moves objects on the floor only cannot change it), and w_ceiling ``ceiling_weight`` (0 by
-default) on how far a lamp's top hangs below the lowest ceiling (2.6 m): an adapter of heights and elevations
-otherwise lowers lamps no reward asks about. Classes come from x0_hat's arg-max (no
+one: an adapter that moves objects on the floor only cannot change it). Classes come from x0_hat's arg-max (no
 gradient), or are the rooms' given ones for an adapter with required objects.
 A policy gradient from 32 scenes an epoch has to discover, scene by scene, which way separates two objects;
 this gradient says it for every pair. It uses :class:`~agents.ddpo.DDPO`'s rollouts, evaluation, checkpoints
@@ -47,12 +44,11 @@ from .ddpo import DDPO
 
 def physics_penalty(x0: torch.Tensor, stats, floors, out_of_bound_weight: float = 1.0,
                     floor_weight: float = 0.0, overlap_weight: float = 1.0,
-                    out_of_bound_shrink: float = geo.OUT_OF_BOUND_SHRINK, ceiling_weight: float = 0.0) -> torch.Tensor:
+                    out_of_bound_shrink: float = geo.OUT_OF_BOUND_SHRINK) -> torch.Tensor:
     """(B,) ``overlap_weight`` times the overlap volume (m^3) of every pair of ground objects' axis-aligned bounds
     plus ``out_of_bound_weight`` times the out-of-bound area (m^2, footprints shrunk by ``out_of_bound_shrink``
     m, R_out's 0.05 m by default) of every object plus ``floor_weight`` times the ground objects' distances (m)
-    from the floor plus ``ceiling_weight`` times how far the lamps' tops hang below the lowest ceiling (m), of
-    model features ``x0`` (B, N, 8 + K) on ``floors``; differentiable in the geometry."""
+    from the floor, of model features ``x0`` (B, N, 8 + K) on ``floors``; differentiable in the geometry."""
     spec = stats.spec
     trans, half, yaws = decode_geometry(x0, stats, floor_half_extents(floors).to(x0))
     labels = x0[..., 8:].argmax(-1)
@@ -63,10 +59,7 @@ def physics_penalty(x0: torch.Tensor, stats, floors, out_of_bound_weight: float 
     volume = (overlap[..., 0] * overlap[..., 1].detach() * overlap[..., 2] * pairs).sum((1, 2))
     outside = geo.box_out_of_floor_area(trans, half, yaws, floors, valid, out_of_bound_shrink).sum(1)
     off_floor = geo.floor_gaps(trans, half, ground).sum(1)
-    hanging = torch.tensor(spec.hanging_mask(), device=x0.device)[labels]
-    low = geo.ceiling_gaps(trans, half, hanging).sum(1)
-    return (overlap_weight * volume + out_of_bound_weight * outside.to(volume) + floor_weight * off_floor
-            + ceiling_weight * low)
+    return overlap_weight * volume + out_of_bound_weight * outside.to(volume) + floor_weight * off_floor
 
 
 def task_surrogate(task_reward, x0: torch.Tensor, stats, floors) -> tuple[torch.Tensor, torch.Tensor, float]:
@@ -83,9 +76,9 @@ def task_surrogate(task_reward, x0: torch.Tensor, stats, floors) -> tuple[torch.
 class PhysicsGradient(DDPO):
     """The physics gradient (module doc) with :class:`DDPO`'s surface: ``learn``, ``save``/``load``,
     callbacks. Uses ``learning_rate``, ``minibatch_size``, ``num_inner_epochs``, ``max_grad_norm``,
-    ``gradient_steps``, ``overlap_weight``, ``out_of_bound_weight``, ``out_of_bound_shrink``, ``ceiling_weight``
-    and ``kl_coef`` of :class:`~agents.ddpo.DDPOConfig`; the env's reward is logged, not optimised, but for a
-    stage-2 task reward, whose gradient joins (module doc)."""
+    ``gradient_steps``, ``overlap_weight``, ``out_of_bound_weight``, ``out_of_bound_shrink`` and ``kl_coef`` of
+    :class:`~agents.ddpo.DDPOConfig`; the env's reward is logged, not optimised, but for a stage-2 task reward, whose
+    gradient joins (module doc)."""
 
     name = "PHYSICS-GRADIENT"
 
@@ -123,8 +116,7 @@ class PhysicsGradient(DDPO):
                 x0_hat = x0_hat.cpu()
                 loss = physics_penalty(x0_hat, venv.stats, floors, out_of_bound_weight=cfg.out_of_bound_weight,
                                        floor_weight=floor_weight, overlap_weight=cfg.overlap_weight,
-                                       out_of_bound_shrink=cfg.out_of_bound_shrink,
-                                       ceiling_weight=cfg.ceiling_weight).mean()
+                                       out_of_bound_shrink=cfg.out_of_bound_shrink).mean()
                 info = {"physics": loss.item()}
                 if task is not None:
                     surrogate, values, size = task_surrogate(task[0], x0_hat, venv.stats, floors)

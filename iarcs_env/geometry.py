@@ -34,7 +34,6 @@ import shapely
 import torch
 
 from .floorplan import FloorPlan
-from .rooms import LOWEST_CEILING
 from .scene import box_corners_xz, footprint_reach
 
 #: Collision threshold of the metrics (m^3): two ground objects collide when their boxes overlap more.
@@ -58,15 +57,6 @@ def floor_gaps(translations: torch.Tensor, half_sizes: torch.Tensor, ground: tor
     0.09 m of it, 99.6% within 0.03 m)."""
     bottoms = translations[..., 1] - half_sizes[..., 1]
     return torch.where(ground, bottoms.abs(), torch.zeros_like(bottoms))
-
-
-def ceiling_gaps(translations: torch.Tensor, half_sizes: torch.Tensor, hanging: torch.Tensor,
-                 ceiling: float = LOWEST_CEILING) -> torch.Tensor:
-    """(B, N) how far (m) each hanging object's top (ceiling and pendant lamps) is below ``ceiling``; 0 at or
-    above it, and for the other slots. Lamps hang from the ceiling: their tops are within 0.04 m of it in the
-    procedural rooms, at it in the median real bedroom."""
-    tops = translations[..., 1] + half_sizes[..., 1]
-    return torch.where(hanging, (ceiling - tops).clamp(min=0.0), torch.zeros_like(tops))
 
 
 def wall_misalignment(yaws: torch.Tensor, floors: Sequence[FloorPlan], mask: torch.Tensor) -> torch.Tensor:

@@ -22,9 +22,6 @@ LIVING_DINING_CLASSES = (
 EMPTY = "empty"
 #: Classes that hang from the ceiling: not "ground objects" for collision, reachability and walkability.
 CEILING_CLASSES = frozenset({"ceiling_lamp", "pendant_lamp"})
-#: The ceiling height (m) of a layout that gives none: the lowest of the data's rooms (3D-FRONT bedrooms: 2.6 m
-#: or more in 99%; the procedural rooms: 2.6-2.9 m).
-LOWEST_CEILING = 2.6
 
 
 @dataclass(frozen=True)
@@ -66,10 +63,6 @@ class RoomSpec:
     def ground_mask(self):
         """Boolean list over the vocabulary: True for ground objects (not ceiling lamps, not empty)."""
         return [c not in CEILING_CLASSES and c != EMPTY for c in self.vocabulary]
-
-    def hanging_mask(self):
-        """Boolean list over the vocabulary: True for the objects that hang from the ceiling (its lamps)."""
-        return [c in CEILING_CLASSES for c in self.vocabulary]
 
 
 ROOMS: dict[str, RoomSpec] = {

@@ -22,7 +22,7 @@ import numpy as np
 import torch
 
 from .floorplan import FloorPlan, rotate_xz
-from .rooms import LOWEST_CEILING, RoomSpec, get_room
+from .rooms import RoomSpec, get_room
 
 if TYPE_CHECKING:
     from .stats import DatasetStats
@@ -44,7 +44,7 @@ class Layout:
     half_sizes: np.ndarray  # (n, 3)
     yaws: np.ndarray  # (n,)
     id: str = ""
-    ceiling_height: float = LOWEST_CEILING
+    ceiling_height: float = 2.6
     extras: list[dict] = field(default_factory=list)  # per-object fields kept from the source (jid, ...)
 
     def __post_init__(self):
