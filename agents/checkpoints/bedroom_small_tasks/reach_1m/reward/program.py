@@ -10,8 +10,8 @@ import torch
 
 # Thresholds and softness of the checks
 HEIGHT_LIMIT = 1.0  # m: highest allowed top of a support surface
-HEIGHT_SCALE = 0.4  # m: softness of the height penalty
-AND_SHARE = 0.25  # soft AND: share of the product (the rest is the mean of the parts)
+HEIGHT_SCALE = 0.2  # m: softness of the height penalty
+AND_SHARE = 0.5  # soft AND: share of the product (the rest is the mean of the parts)
 
 # Weights of the checks (relations that carry the constraint weigh more)
 W_HEIGHT_SUPPORT = 2.0
