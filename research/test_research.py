@@ -292,3 +292,15 @@ def test_the_script_runs_end_to_end(tmp_path, variant):
         rl.main(args)
     rl.main(["--plot", str(tmp_path / "rows.json"), "--png", str(tmp_path / "curves.png")])
     assert (tmp_path / "curves.png").stat().st_size > 1000
+
+
+def test_repeat_draws_conditions_the_second_draw_on_the_first():
+    repeat_rates = load("repeat_draws").repeat_rates
+    first = np.array([True, True, False, False, False])
+    second = np.array([True, False, True, False, False])
+    rates = repeat_rates(first, second)
+    assert rates["first"] == 0.4 and rates["second"] == 0.4
+    assert rates["second | first passed"] == 0.5 and rates["second | first failed"] == pytest.approx(1 / 3)
+    assert rates["both failed"] == 0.4
+    with pytest.raises(ValueError, match="sample the same floors twice"):
+        repeat_rates(first, second[:4])
