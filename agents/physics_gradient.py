@@ -12,9 +12,10 @@ with V_ij the overlap volume of the axis-aligned bounds of boxes i and j (exact 
 most is, along the walls; its vertical extent carries no gradient: two objects on the floor overlap in height
 whatever their heights, so flattening them shrinks the number, never the collision), A_i the area (m^2) of box
 i's footprint, shrunk by ``out_of_bound_shrink`` per side (R_out's 0.05 m by default), outside the floor polygon,
-and bottom_i the height (m) of a ground object's bottom above or below the floor; w_vol is ``overlap_weight``
-(1 by default), w_out ``out_of_bound_weight``, w_floor the weight of the run's ``floor_contact`` reward (0 without
-one: an adapter that moves objects on the floor only cannot change it). Classes come from x0_hat's arg-max (no
+and bottom_i the height (m) of a ground object's bottom above or below the floor; for a pair that the collision
+reward's ``contact`` spares (a chair pushed under its table), V_ij less that volume, at least 0. w_vol is
+``overlap_weight`` (1 by default), w_out ``out_of_bound_weight``, w_floor the weight of the run's ``floor_contact``
+reward (0 without one: an adapter that moves objects on the floor only cannot change it). Classes come from x0_hat's arg-max (no
 gradient), or are the rooms' given ones for an adapter with required objects.
 A policy gradient from 32 scenes an epoch has to discover, scene by scene, which way separates two objects;
 this gradient says it for every pair. It uses :class:`~agents.ddpo.DDPO`'s rollouts, evaluation, checkpoints
@@ -38,17 +39,21 @@ from tensordict import TensorDict
 from iarcs_env import geometry as geo
 from iarcs_env.scene import SceneBatch, decode_geometry, floor_half_extents
 
+from rewards.universal import contact_pairs
+
 from . import distributed
 from .ddpo import DDPO
 
 
 def physics_penalty(x0: torch.Tensor, stats, floors, out_of_bound_weight: float = 1.0,
                     floor_weight: float = 0.0, overlap_weight: float = 1.0,
-                    out_of_bound_shrink: float = geo.OUT_OF_BOUND_SHRINK) -> torch.Tensor:
+                    out_of_bound_shrink: float = geo.OUT_OF_BOUND_SHRINK, contact: dict | None = None) -> torch.Tensor:
     """(B,) ``overlap_weight`` times the overlap volume (m^3) of every pair of ground objects' axis-aligned bounds
     plus ``out_of_bound_weight`` times the out-of-bound area (m^2, footprints shrunk by ``out_of_bound_shrink``
     m, R_out's 0.05 m by default) of every object plus ``floor_weight`` times the ground objects' distances (m)
-    from the floor, of model features ``x0`` (B, N, 8 + K) on ``floors``; differentiable in the geometry."""
+    from the floor, of model features ``x0`` (B, N, 8 + K) on ``floors``; differentiable in the geometry.
+    ``contact``: the collision reward's option; a pair of its classes is charged only the overlap beyond its
+    volume."""
     spec = stats.spec
     trans, half, yaws = decode_geometry(x0, stats, floor_half_extents(floors).to(x0))
     labels = x0[..., 8:].argmax(-1)
@@ -56,7 +61,11 @@ def physics_penalty(x0: torch.Tensor, stats, floors, out_of_bound_weight: float 
     ground = torch.tensor(spec.ground_mask(), device=x0.device)[labels]
     overlap = geo.bounds_overlaps(trans, half, yaws)
     pairs = (ground[:, :, None] & ground[:, None]).triu(1)
-    volume = (overlap[..., 0] * overlap[..., 1].detach() * overlap[..., 2] * pairs).sum((1, 2))
+    volume = overlap[..., 0] * overlap[..., 1].detach() * overlap[..., 2]
+    if contact:
+        spared = contact_pairs(labels, valid, spec, contact)
+        volume = torch.where(spared, (volume - contact["volume"]).clamp_min(0.0), volume)
+    volume = (volume * pairs).sum((1, 2))
     outside = geo.box_out_of_floor_area(trans, half, yaws, floors, valid, out_of_bound_shrink).sum(1)
     off_floor = geo.floor_gaps(trans, half, ground).sum(1)
     return overlap_weight * volume + out_of_bound_weight * outside.to(volume) + floor_weight * off_floor
@@ -93,6 +102,10 @@ class PhysicsGradient(DDPO):
         """The weight of the run's ``floor_contact`` reward (0 without one)."""
         return float(getattr(self.venv.reward_fn, "weights", {}).get("floor_contact", 0.0))
 
+    def contact(self) -> dict | None:
+        """The ``contact`` option of the run's collision reward (None without one): overlaps it spares."""
+        return getattr(self.venv.reward_fn, "options", {}).get("collision", {}).get("contact")
+
     def task_reward(self):
         """(the task reward, its weight) when the env's reward has a differentiable ``task`` term, else None."""
         fn = self.venv.reward_fn
@@ -104,7 +117,7 @@ class PhysicsGradient(DDPO):
         steps = self.stochastic_steps()[-cfg.gradient_steps:]
         b = rollout.batch_size[0]
         infos = []
-        task, floor_weight = self.task_reward(), self.floor_weight()
+        task, floor_weight, contact = self.task_reward(), self.floor_weight(), self.contact()
         self.policy.model.eval()
         for _ in range(cfg.num_inner_epochs):
             perm = torch.randperm(b, generator=self.generator)
@@ -116,7 +129,7 @@ class PhysicsGradient(DDPO):
                 x0_hat = x0_hat.cpu()
                 loss = physics_penalty(x0_hat, venv.stats, floors, out_of_bound_weight=cfg.out_of_bound_weight,
                                        floor_weight=floor_weight, overlap_weight=cfg.overlap_weight,
-                                       out_of_bound_shrink=cfg.out_of_bound_shrink).mean()
+                                       out_of_bound_shrink=cfg.out_of_bound_shrink, contact=contact).mean()
                 info = {"physics": loss.item()}
                 if task is not None:
                     surrogate, values, size = task_surrogate(task[0], x0_hat, venv.stats, floors)

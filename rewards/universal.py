@@ -132,25 +132,26 @@ def collision_reward(batch: SceneBatch, threshold: float = geo.COLLISION_VOLUME,
     vol = geo.box_overlap_volumes(batch.translations, batch.half_sizes, batch.yaws, batch.ground_mask)
     penetrating = vol > threshold
     if contact:
-        if set(contact) != {"pairs", "volume"}:
-            raise ValueError(f"collision contact: expected {{pairs: [[a, b], ...], volume: m^3}}, got {contact!r}")
-        penetrating &= ~(_contact_pairs(batch, contact["pairs"]) & (vol <= contact["volume"]))
+        penetrating &= ~(contact_pairs(batch.labels, batch.mask, batch.spec, contact) & (vol <= contact["volume"]))
     total = (vol * penetrating).triu(1).sum((1, 2))
     reward = torch.where(penetrating.flatten(1).any(1), -total, torch.full_like(total, bonus))
     return _out(reward - per_object * penetrating.any(2).sum(1), batch)
 
 
-def _contact_pairs(batch: SceneBatch, pairs: list) -> torch.Tensor:
-    """(B, N, N) bool: slots i, j whose classes form one of ``pairs`` (either order)."""
-    out = torch.zeros(batch.labels.shape + batch.labels.shape[-1:], dtype=torch.bool, device=batch.labels.device)
-    for pair in pairs:
+def contact_pairs(labels: torch.Tensor, valid: torch.Tensor, spec, contact: dict) -> torch.Tensor:
+    """(B, N, N) bool: the valid slots i, j whose classes (``labels``, of room type ``spec``) form one of
+    ``contact["pairs"]`` (either order); ``contact`` is the collision reward's option (module doc)."""
+    if set(contact) != {"pairs", "volume"}:
+        raise ValueError(f"collision contact: expected {{pairs: [[a, b], ...], volume: m^3}}, got {contact!r}")
+    out = torch.zeros(labels.shape + labels.shape[-1:], dtype=torch.bool, device=labels.device)
+    for pair in contact["pairs"]:
         if len(pair) != 2:
             raise ValueError(f"collision contact: each pair names two classes or class groups, got {pair!r}")
-        a, b = (class_mask(batch.labels, batch.spec.classes, [name]) & batch.mask for name in pair)  # unknown: raises
+        a, b = (class_mask(labels, spec.classes, [name]) & valid for name in pair)  # unknown: raises
         for name in pair:
-            if not set(CLASS_GROUPS.get(name, (name,))) & set(batch.spec.classes):
-                raise ValueError(f"collision contact: {batch.spec.name} rooms have no {name!r}; name classes or "
-                                 f"groups of this room type ({', '.join(batch.spec.classes)})")
+            if not set(CLASS_GROUPS.get(name, (name,))) & set(spec.classes):
+                raise ValueError(f"collision contact: {spec.name} rooms have no {name!r}; name classes or "
+                                 f"groups of this room type ({', '.join(spec.classes)})")
         out |= (a[:, :, None] & b[:, None, :]) | (b[:, :, None] & a[:, None, :])
     return out
 

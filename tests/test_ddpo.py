@@ -181,7 +181,8 @@ def test_gae_lambda_zero_credits_a_step_only_with_its_own_change():
 def test_physics_penalty_is_the_overlap_volume_plus_the_out_of_bound_area_and_descends():
     """Axis-aligned boxes, where the bounds' overlap is the exact one: two overlapping boxes in an L-shaped room
     and one through its notch score what the metrics' geometry measures on the decoded scene, at the given
-    weights and with footprints shrunk as asked, a nightstand
+    weights and with footprints shrunk as asked, a pair the collision reward's contact spares is charged only
+    the overlap beyond its volume, a nightstand
     lifted 0.2 m adds its gap at the floor weight, and a small step down the penalty's gradient in the model
     features lowers it, moving footprints, never heights or elevations (without a floor weight)."""
     from iarcs_env import geometry as geo
@@ -207,6 +208,13 @@ def test_physics_penalty_is_the_overlap_volume_plus_the_out_of_bound_area_and_de
     assert whole > outside  # the whole footprints stick out further than the shrunk ones
     unshrunk = physics_penalty(x0.detach(), stats, batch.floors, out_of_bound_shrink=0.0)
     assert unshrunk.item() == pytest.approx(float(volume + whole), rel=1e-4)
+    spared = {"pairs": [["cabinet", "wardrobe"]], "volume": 0.01}
+    touching = physics_penalty(x0.detach(), stats, batch.floors, contact=spared)
+    assert touching.item() == pytest.approx(float(volume - 0.01 + outside), rel=1e-4)
+    assert physics_penalty(x0.detach(), stats, batch.floors, contact={**spared, "volume": 1.0}).item() == \
+        pytest.approx(float(outside), rel=1e-4)
+    other = physics_penalty(x0.detach(), stats, batch.floors, contact={**spared, "pairs": [["nightstand", "bed"]]})
+    assert other.item() == pytest.approx(penalty.item(), rel=1e-6)
     gap = float(geo.floor_gaps(scene.translations, scene.half_sizes, scene.ground_mask).sum())
     assert gap == pytest.approx(0.2, abs=1e-3)
     lifted = physics_penalty(x0.detach(), stats, batch.floors, floor_weight=10.0)
