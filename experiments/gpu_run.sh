@@ -4,9 +4,9 @@
 #   bash experiments/gpu_run.sh OUT_DIR MINUTES
 #
 # On a bare CUDA machine with PyTorch (and no package index), inside MINUTES of wall time, in order: the CUDA tests
-# (tests/test_device.py), the pretraining benchmark on the GPU, the bedroom prior trained by CONFIG until the
-# deadline (by default the shipped prior continued), then its evaluation on held-out floors beside the data's and the
-# shipped prior's figures (the shipped prior is evaluated while the training runs). Every step has a hard time
+# (tests/test_device.py), the pretraining benchmark on the GPU, the prior of CONFIG's room (the bedroom's by default)
+# trained by CONFIG until the deadline (by default the shipped prior continued), then its evaluation on held-out
+# floors beside the data's and the shipped prior's figures (the shipped prior is evaluated while the training runs). Every step has a hard time
 # limit; a failed step is recorded and the run goes on. It writes under OUT_DIR only:
 #
 #   prior_fp16.pt  the trained prior, float16 as shipped    eval.json  the evaluation (data / shipped / trained)
@@ -126,6 +126,10 @@ if [ "${DEVICE:-auto}" = auto ]; then
              || echo cpu)
 fi
 plan device "$DEVICE"
+# the room type the config trains (its prior is sampled, evaluated and compared with the one shipped for that room)
+ROOM=$(timeout 60 "$PY" -c "import sys; from agents.pretrain import load_config; print(load_config(sys.argv[1]).room)" \
+       "$CONFIG" 2>> "$WORK/install.log" || echo bedroom)
+plan room "$ROOM"
 {
     echo "host: $(uname -n), $(nproc) CPU cores, $(awk '/MemTotal/ {printf "%.0f GiB", $2 / 1048576}' /proc/meminfo) memory"
     if command -v nvidia-smi > /dev/null; then
@@ -204,25 +208,26 @@ mkdir -p "$WORK/eval/shipped" "$WORK/eval/trained"
 eval_prior() {
     local name=$1 prior=$2 end=$3 dir="$WORK/eval/$1"
     plan "${name}_prior" "$prior"
-    run_step "$name: sample" "$(( $(until_s "$end") - 12 ))" "$dir/log" "$PY" -m experiments.cli sample --room bedroom \
+    run_step "$name: sample" "$(( $(until_s "$end") - 12 ))" "$dir/log" "$PY" -m experiments.cli sample --room "$ROOM" \
         --checkpoint "$prior" --floors "$WORK/floors.json" --num-scenes "$FLOORS" --seed 0 --device "$DEVICE" \
         --out "$dir/samples.json" || return 1
     run_step "$name: evaluate" "$(( $(until_s "$end") - 6 ))" "$dir/log" "$PY" -m experiments.cli evaluate \
         --scenes "$dir/samples.json" --reference "$WORK/floors.json" --out "$dir/iarcs.json" --name "$name prior"
     run_step "$name: figures" "$(( $(until_s "$end") - 3 ))" "$dir/log" "$PY" experiments/gpu_run_tools.py figures \
         --samples "$dir/samples.json" --reference "$WORK/floors.json" --out "$dir/figures.json"
+    [ "$ROOM" = bedroom ] || return 0
     run_step "$name: bed ablation" "$(until_s "$end")" "$dir/log" "$PY" experiments/gpu_run_tools.py bed-ablation \
         --prior "$prior" --reference "$WORK/floors.json" --device "$DEVICE" --out "$dir/bed_ablation.json"
 }
 floors() {
-    run_step floors "$1" "$WORK/floors.log" "$PY" -m experiments.cli data generate --room bedroom \
+    run_step floors "$1" "$WORK/floors.log" "$PY" -m experiments.cli data generate --room "$ROOM" \
         --num-scenes "$FLOORS" --seed 777 --out "$WORK/floors.json"
 }
 
 # --- 3. training; meanwhile the held-out floors and the shipped prior's evaluation ------------------------------------
 # (a few CPU threads for it: the training's loop needs a free core to launch its GPU work)
 ( export OMP_NUM_THREADS=$(clamp $(( $(nproc) / 4 )) 1 4)
-  floors "$(min 120 $(( WINDOW / 2 )))" && eval_prior shipped agents/checkpoints/bedroom_small.pt "$TRAIN_END" ) \
+  floors "$(min 120 $(( WINDOW / 2 )))" && eval_prior shipped "agents/checkpoints/${ROOM}_small.pt" "$TRAIN_END" ) \
     > "$WORK/baseline.log" 2>&1 &
 BASELINE=$!
 if [ "$TRAIN_BUDGET" -ge 10 ]; then

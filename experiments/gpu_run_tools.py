@@ -74,17 +74,19 @@ def export(state: str, dest: str) -> dict:
 
 
 def figures(samples: str, reference: str) -> dict:
-    """The fidelity figures ``iarcs evaluate`` does not report: object-count and beds-per-room TVD and class KL
+    """The fidelity figures ``iarcs evaluate`` does not report: object-count (and, of bedrooms, beds-per-room) TVD and class KL
     (eps 1e-3) of ``iarcs_env.datasets.realism`` (the targets' figures), and the reference's own metrics."""
     from iarcs_env.datasets import load_layouts
     from iarcs_env.datasets.realism import class_kl, count_tvd
     from iarcs_env.metrics import evaluate_layouts
     from iarcs_env.relations import BEDS
 
-    gen, ref = load_layouts(samples, "bedroom"), load_layouts(reference, "bedroom")
+    gen, ref = load_layouts(samples), load_layouts(reference)
     ref = ref[:len(gen)]
-    return {"count_tvd": count_tvd(ref, gen), "beds_tvd": count_tvd(ref, gen, BEDS),
-            "class_kl_realism": class_kl(ref, gen), "reference": evaluate_layouts(ref)}
+    out = {"count_tvd": count_tvd(ref, gen), "class_kl_realism": class_kl(ref, gen), "reference": evaluate_layouts(ref)}
+    if ref and ref[0].room_type == "bedroom":
+        out["beds_tvd"] = count_tvd(ref, gen, BEDS)
+    return out
 
 
 def bed_ablation(prior_path: str, reference: str, device: str, timesteps=(50, 100, 200)) -> dict:
@@ -260,7 +262,8 @@ def eval_json(work: Path) -> dict:
     out = {
         "floors": {"count": floors, "asked": int(plan.get("eval_floors_asked", floors) or floors),
                    "reduced": plan.get("eval_note") or None,
-                   "source": "iarcs data generate --room bedroom --num-scenes N --seed 777 (held-out procedural rooms)"},
+                   "source": f"iarcs data generate --room {plan.get('room', 'bedroom')} --num-scenes N --seed 777 "
+                             "(held-out procedural rooms)"},
         "sampler": {"ddim_steps": 20, "eta": 1.0, "seed": 0},
         "reference": reference,
         "shipped": priors["shipped"] or {"status": (step_row(work, "shipped: sample") or {}).get("status", "not run")},
@@ -434,8 +437,8 @@ def markdown_report(work: Path) -> str:
     L += [""]
 
     ev = eval_json(work)
-    L += ["## Evaluation", "", f"{ev['floors']['count']} held-out floors (`iarcs data generate --room bedroom --num-scenes "
-          f"{ev['floors']['count']} --seed 777`), one scene per floor, 20-step DDIM, eta 1, seed 0."
+    L += ["## Evaluation", "", f"{ev['floors']['count']} held-out floors (`iarcs data generate --room "
+          f"{plan.get('room', 'bedroom')} --num-scenes {ev['floors']['count']} --seed 777`), one scene per floor, 20-step DDIM, eta 1, seed 0."
           + (f" **Fewer floors than asked ({ev['floors']['asked']}):** {ev['floors']['reduced']}" if ev["floors"]["reduced"]
              else ""), ""]
     ref, cols = ev["reference"], [n for n in PRIORS if "n_scenes" in ev[n] or "count_tvd" in ev[n]]

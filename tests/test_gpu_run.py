@@ -105,6 +105,29 @@ def test_the_gpu_run_passes_end_to_end_on_the_cpu_within_its_budget(tmp_path):
 
 
 @pytest.mark.slow
+def test_the_gpu_run_trains_and_evaluates_the_room_type_of_its_config(tmp_path):
+    """A living-room config: its floors, its shipped prior and its relations; no bed ablation."""
+    minutes = 1.5
+    proc, seconds, out = run_script(tmp_path, minutes, CONFIG="tests/fixtures/gpu_run_tiny_livingroom.yaml",
+                                    TESTS="tests/test_gpu_run.py::test_the_fidelity_targets", BENCH_TIMEOUT="20",
+                                    BENCH_ARGS="--presets tiny --batches 64 --rooms 200 --repeats 1")
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    assert seconds <= minutes * 60 + OVERRUN_S, proc.stdout
+    report = (out / "report.md").read_text()
+    steps = steps_table(report)
+    for name in ("train", "export", "trained: sample", "trained: evaluate", "trained: figures"):
+        assert steps.get(name) == "ok", (name, steps)
+    assert not any("bed ablation" in name for name in steps)
+    assert "-m experiments.cli data generate --room livingroom --num-scenes" in report
+    assert "agents/checkpoints/livingroom_small.pt" in report
+    ev = json.loads((out / "eval.json").read_text())
+    assert "--room livingroom" in ev["floors"]["source"]
+    trained = ev["trained"]
+    assert trained["room_type"] == "livingroom" and "beds_tvd" not in trained and "count_tvd" in trained
+    assert set(trained["relations"]) >= {"coffee_table_front_of_sofa", "tv_stand_facing_sofa"}
+
+
+@pytest.mark.slow
 def test_a_hung_step_is_stopped_at_its_limit_and_the_budget_holds(tmp_path):
     minutes = 0.5
     proc, seconds, out = run_script(tmp_path, minutes, TESTS="tests/fixtures/gpu_run_hang.py", TESTS_TIMEOUT="8",
