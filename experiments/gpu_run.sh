@@ -127,8 +127,8 @@ if [ "${DEVICE:-auto}" = auto ]; then
 fi
 plan device "$DEVICE"
 # the room type the config trains (its prior is sampled, evaluated and compared with the one shipped for that room)
-ROOM=$(timeout 60 "$PY" -c "import sys; from agents.pretrain import load_config; print(load_config(sys.argv[1]).room)" \
-       "$CONFIG" 2>> "$WORK/install.log" || echo bedroom)
+ROOM=$(timeout 20 "$PY" -c "import sys; from pathlib import Path; from agents.config import read_yaml_settings
+print(read_yaml_settings(Path(sys.argv[1])).get('room', 'bedroom'))" "$CONFIG" 2>> "$WORK/install.log" || echo bedroom)
 plan room "$ROOM"
 {
     echo "host: $(uname -n), $(nproc) CPU cores, $(awk '/MemTotal/ {printf "%.0f GiB", $2 / 1048576}' /proc/meminfo) memory"
