@@ -15,8 +15,8 @@ i's footprint, shrunk by ``out_of_bound_shrink`` per side (R_out's 0.05 m by def
 and bottom_i the height (m) of a ground object's bottom above or below the floor; for a pair that the collision
 reward's ``contact`` spares (a chair pushed under its table), V_ij less that volume, at least 0. w_vol is
 ``overlap_weight`` (1 by default), w_out ``out_of_bound_weight``, w_floor the weight of the run's ``floor_contact``
-reward (0 without one: an adapter that moves objects on the floor only cannot change it). Classes come from x0_hat's arg-max (no
-gradient), or are the rooms' given ones for an adapter with required objects.
+reward (0 without one: an adapter that moves objects on the floor only cannot change it). Classes come from
+x0_hat's arg-max (no gradient), or are the rooms' given ones for an adapter with required objects.
 A policy gradient from 32 scenes an epoch has to discover, scene by scene, which way separates two objects;
 this gradient says it for every pair. It uses :class:`~agents.ddpo.DDPO`'s rollouts, evaluation, checkpoints
 and callbacks; only the update differs.

@@ -74,8 +74,8 @@ def export(state: str, dest: str) -> dict:
 
 
 def figures(samples: str, reference: str) -> dict:
-    """The fidelity figures ``iarcs evaluate`` does not report: object-count (and, of bedrooms, beds-per-room) TVD and class KL
-    (eps 1e-3) of ``iarcs_env.datasets.realism`` (the targets' figures), and the reference's own metrics."""
+    """The fidelity figures ``iarcs evaluate`` does not report: object-count (and, of bedrooms, beds-per-room) TVD
+    and class KL (eps 1e-3) of ``iarcs_env.datasets.realism`` (the targets' figures), and the reference's own metrics."""
     from iarcs_env.datasets import load_layouts
     from iarcs_env.datasets.realism import class_kl, count_tvd
     from iarcs_env.metrics import evaluate_layouts
@@ -438,7 +438,8 @@ def markdown_report(work: Path) -> str:
 
     ev = eval_json(work)
     L += ["## Evaluation", "", f"{ev['floors']['count']} held-out floors (`iarcs data generate --room "
-          f"{plan.get('room', 'bedroom')} --num-scenes {ev['floors']['count']} --seed 777`), one scene per floor, 20-step DDIM, eta 1, seed 0."
+          f"{plan.get('room', 'bedroom')} --num-scenes {ev['floors']['count']} --seed 777`), one scene per floor, "
+          "20-step DDIM, eta 1, seed 0."
           + (f" **Fewer floors than asked ({ev['floors']['asked']}):** {ev['floors']['reduced']}" if ev["floors"]["reduced"]
              else ""), ""]
     ref, cols = ev["reference"], [n for n in PRIORS if "n_scenes" in ev[n] or "count_tvd" in ev[n]]
