@@ -125,8 +125,9 @@ class DiffusionPolicy(nn.Module):
         adapt follow ``init_from`` (kept frozen, and saved with it), or the prior; ``init_from``'s own reference
         when ``init_from`` adapts the same features (a second training phase of a task adapter: the same mix,
         one network pass less a step). ``required``: the :class:`RequiredObject` s of its task (its rooms'
-        classes are then given: it must not adapt ``class``). ``adapted_classes``: the classes or class groups whose objects it changes (empty: those of ``init_from``,
-        or all); the other objects follow the reference. Needs ``required`` (the rooms' classes given)."""
+        classes are then given: it must not adapt ``class``). ``adapted_classes``: the classes or class groups
+        whose objects it changes (empty: those of ``init_from``, or all); the other objects follow the reference.
+        Needs ``required`` (the rooms' classes given)."""
         self.model.add_adapter(name, self.lora_config)
         self.adapted[name] = check_feature_groups(adapted or (self.adapted[init_from] if init_from else ()))
         if required and "class" in self.adapted[name]:

@@ -9,9 +9,9 @@ of their renders against the data rooms that pass the same checker; 50% = indist
 Floors and data rooms: ``iarcs data generate --room bedroom --num-scenes MAX --seed 777``; N scenes use its first
 N floors. Both ways sample those floors with ``--satisfying`` (``--max-draws``, seed 0), timed as the commands
 run (model loading included), on the threads OMP_NUM_THREADS allows. An adapter's training time is its runs'
-TensorBoard spans, every phase (the shipped adapter's ``training.json``); a task without a shipped adapter has rejection rows
-only. Writes WORK/cost.json and WORK/cost.md after every row, keeping the rows of earlier calls it did not measure
-again.
+TensorBoard spans, every phase (the shipped adapter's ``training.json``); a task without a shipped adapter has
+rejection rows only. Writes WORK/cost.json and WORK/cost.md after every row, keeping the rows of earlier calls it
+did not measure again.
 """
 
 from __future__ import annotations
