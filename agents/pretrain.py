@@ -103,6 +103,9 @@ class PretrainConfig:
     footprints overlap more than the pair's do in the data, over the pair's vertical overlap in the data,
     summed per scene (:func:`overlap_excess`), at noise levels t < ``overlap_max_timestep``. Aims at gross
     collisions without penalising the data's own tucked-in nightstands. 0: the plain DDPM loss."""
+    overlap_spares_contact: bool = False
+    """The overlap loss charges only pairs that do not overlap in the data (:func:`overlap_excess`'s
+    ``spare_contact``): the living and dining rooms' chairs stand under their tables in the data."""
     overlap_max_timestep: int = 100
     """The overlap loss applies below this t only: at higher noise x0_hat is a blurred average of layouts
     whose boxes overlap by nature (about 9 m^3 per scene at t = 400 for the 3,000-step prior)."""
@@ -355,7 +358,8 @@ def batch_loss(model: Callable, schedule: NoiseSchedule, batch: TrainingBatch, c
     epsilon (or x0, or v: ``schedule.config.prediction_type``)."""
     penalties = []
     if cfg.overlap_weight:
-        penalties.append(overlap_excess(spec, stats, batch.extents, cfg.overlap_weight, cfg.overlap_max_timestep))
+        penalties.append(overlap_excess(spec, stats, batch.extents, cfg.overlap_weight, cfg.overlap_max_timestep,
+                                        cfg.overlap_spares_contact))
     if cfg.out_of_bound_weight:
         penalties.append(out_of_bound_excess(spec, stats, batch.extents, batch.points, cfg.out_of_bound_weight,
                                              cfg.out_of_bound_max_timestep))

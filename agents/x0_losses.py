@@ -25,14 +25,16 @@ def on_rows(mask: torch.Tensor, per_scene: Callable[..., torch.Tensor], *scenes:
 
 
 def overlap_excess(spec, stats: DatasetStats, extents: torch.Tensor, weight: float = 1.0,
-                   max_timestep: int = NoiseSchedule().num_train_timesteps) -> Callable:
+                   max_timestep: int = NoiseSchedule().num_train_timesteps, spare_contact: bool = False) -> Callable:
     """The ``x0_penalty`` of :meth:`NoiseSchedule.training_loss` for ``overlap_weight``: per scene with
     t < ``max_timestep``, ``weight`` times the sum over pairs of objects (non-empty slots of x0) of
     relu(A(x0_hat) - A(x0)) * H(x0): A the overlap area of the two footprints' axis-aligned bounds (exact
     for the axis-aligned furniture of the data), H the pair's vertical overlap in the data; 0 for the other
     scenes. The footprints of x0_hat are the data's (sizes and yaws) at x0_hat's floor positions: the loss is
     the overlap volume beyond the data's and moves objects apart on the floor, it cannot be lowered by
-    shrinking, turning or lifting them (a lamp above a bed costs nothing)."""
+    shrinking, turning or lifting them (a lamp above a bed costs nothing). ``spare_contact``: only the pairs
+    whose footprints do not overlap in the data are charged; the data's contact (a chair under its table) is left
+    to the DDPM loss, since the one-sided excess would otherwise pull a blurred x0_hat's chairs off their table."""
 
     def overlaps(x, extents):  # (B, N, N, 3) overlap lengths of each pair of boxes' bounds along x, y and z
         return bounds_overlaps(*decode_geometry(x, stats, extents))
@@ -44,6 +46,8 @@ def overlap_excess(spec, stats: DatasetStats, extents: torch.Tensor, weight: flo
         data = overlaps(x0, extents)
         area = lambda o: o[..., 0] * o[..., 2]  # noqa: E731
         excess = (area(placed) - area(data)).clamp_min(0) * data[..., 1] * pairs
+        if spare_contact:
+            excess = excess * (area(data) == 0)
         return excess.flatten(1).sum(1)
 
     return lambda x0_hat, x0, t: weight * on_rows(t < max_timestep, per_scene, x0_hat, x0, extents)

@@ -300,6 +300,14 @@ def test_overlap_loss_measures_the_excess_over_the_data_and_pushes_objects_apart
     assert float(x_hat.grad[0, 0, 0]) < 0  # the bed towards +x
     assert float(x_hat.grad[0, :3, 1].abs().max()) == 0.0  # and no object up or down,
     assert float(x_hat.grad[0, :3, 3:].abs().max()) == 0.0  # nor resized, turned or relabelled
+    # the nightstand pushed 0.1 m deeper into the bed: charged the extra 0.1 x 0.4 x 0.5 m^3, unless the loss
+    # spares the data's contact (the pair overlaps in the data); the wardrobe's new overlap is charged either way
+    deeper = moved.clone()
+    deeper[0, 1, 0] -= 0.1
+    x_deeper, _ = encode_batch(BEDROOM, stats, labels, deeper, half, yaws, *batch[4:])
+    spared = overlap_excess(BEDROOM, stats, extents, weight=2.0, max_timestep=100, spare_contact=True)
+    assert float(penalty(x_deeper, x0, early)) == pytest.approx(2.0 * (float(exact) + 0.02), rel=1e-3)
+    assert float(spared(x_deeper, x0, early)) == pytest.approx(2.0 * float(exact), rel=1e-4)
     with pytest.raises(ValueError, match="overlap_weight"):
         PretrainConfig(overlap_weight=-1)
 
@@ -310,8 +318,12 @@ def test_pretraining_adds_the_overlap_loss_when_asked(tmp_path):
     plain = train(tiny_config(tmp_path / "plain", steps=1, log_every=1), rooms, **quiet)
     overlap = train(tiny_config(tmp_path / "overlap", steps=1, log_every=1, overlap_weight=1.0,
                                 overlap_max_timestep=1000), rooms, **quiet)
-    # the same first batch, noise and network: the overlap term of a random network's x0_hat adds to the loss
+    spared = train(tiny_config(tmp_path / "spared", steps=1, log_every=1, overlap_weight=1.0,
+                               overlap_max_timestep=1000, overlap_spares_contact=True), rooms, **quiet)
+    # the same first batch, noise and network: the overlap term of a random network's x0_hat adds to the loss,
+    # less of it where the pairs the toy rooms put in contact (a nightstand into its bed) are spared
     assert math.isfinite(overlap.losses[0][1]) and overlap.losses[0][1] > plain.losses[0][1] + 0.01
+    assert plain.losses[0][1] + 0.01 < spared.losses[0][1] < overlap.losses[0][1] - 1e-4
 
 
 def test_fine_tuning_starts_from_the_init_prior(tmp_path):
