@@ -34,7 +34,7 @@ def overlap_excess(spec, stats: DatasetStats, extents: torch.Tensor, weight: flo
     the overlap volume beyond the data's and moves objects apart on the floor, it cannot be lowered by
     shrinking, turning or lifting them (a lamp above a bed costs nothing). ``spare_contact``: only the pairs
     whose footprints do not overlap in the data are charged; the data's contact (a chair under its table) is left
-    to the DDPM loss, since the one-sided excess would otherwise pull a blurred x0_hat's chairs off their table."""
+    to the DDPM loss (it did not keep the chairs in their tables: docs/results/prior_bedroom_small.md)."""
 
     def overlaps(x, extents):  # (B, N, N, 3) overlap lengths of each pair of boxes' bounds along x, y and z
         return bounds_overlaps(*decode_geometry(x, stats, extents))
