@@ -298,6 +298,10 @@ def load_init(cfg: PretrainConfig) -> tuple[ScenePrior, dict | None]:
                 if getattr(prior.denoiser.config, k) != getattr(want, k)}
         raise ValueError(f"{where} has another architecture than preset {cfg.preset!r} with model {dict(cfg.model)} "
                          f"(checkpoint vs config: {diff}); set preset/model to the checkpoint's")
+    predicts = prior.schedule.config.prediction_type
+    if predicts != cfg.prediction_type:  # the same weights would be read as another quantity
+        raise ValueError(f"{where} predicts {predicts!r}, but this run trains prediction_type "
+                         f"{cfg.prediction_type!r}; set prediction_type: {predicts} in the config")
     return prior, state
 
 

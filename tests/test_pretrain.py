@@ -347,6 +347,8 @@ def test_fine_tuning_starts_from_the_init_prior(tmp_path):
         train(tiny_config(tmp_path / "bad", model={"width": 64}, init_from=tuned_cfg.init_from), other, **quiet)
     with pytest.raises(ValueError, match="same room type"):
         train(tiny_config(tmp_path / "bad2", room="livingroom", init_from=tuned_cfg.init_from), [], **quiet)
+    with pytest.raises(ValueError, match="predicts 'epsilon'.*set prediction_type: epsilon"):
+        train(tiny_config(tmp_path / "bad3", prediction_type="sample", init_from=tuned_cfg.init_from), [], **quiet)
 
 
 def test_cli_pretrain_and_sample(tmp_path, capsys):
