@@ -1,10 +1,10 @@
 """Which pairs of classes make Col_obj: for each scene file, Col_obj (the metric's colliding ground objects over
-ground objects), the share of ground objects whose only collisions are with a bed while being a nightstand (or
-the reverse), Col_obj with the data's nightstand-bed contact spared (overlaps up to 0.04 m^3, as stage 1's
-collision reward spares them), the five commonest colliding class pairs with their share of the colliding pairs
-and the median and largest overlap volume. It shows how much of a collision fall comes from pulling nightstands off
-their bed, whose box the data's nightstands overlap on purpose, and which pairs the data itself puts in contact
-(the collision reward's ``contact``).
+ground objects), the share of ground objects whose only collisions are the room's contact (a nightstand with a bed
+in bedrooms, a seat with a table in living and dining rooms), Col_obj with that contact spared (overlaps up to the
+stage-1 collision reward's ``contact`` volume: 0.04 m^3 in bedrooms, 0.11 in living and dining rooms), the five
+commonest colliding class pairs with their share of the colliding pairs and the median and largest overlap volume.
+It shows how much of a collision fall comes from pulling objects out of the contact the data makes on purpose,
+and how much collision is left beyond it.
 
     .venv/bin/python research/collision_pairs.py [--room bedroom] data=FLOORS.json prior=PRIOR.json stage1=STAGE1.json
 
@@ -23,22 +23,26 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from iarcs_env import geometry as geo  # noqa: E402
 from iarcs_env.datasets import load_layouts  # noqa: E402
 from iarcs_env.metrics import batch_float64  # noqa: E402
-from iarcs_env.relations import BEDS  # noqa: E402
+from iarcs_env.relations import BEDS, CLASS_GROUPS  # noqa: E402
 
 
-def nightstand_bed(a: str, b: str) -> bool:
-    return {a, b} & {"nightstand"} and {a, b} & set(BEDS) and a != b
+#: room -> (classes of one side, of the other, the largest overlap (m^3) spared): the contact of the stage-1 configs
+#: (experiments/stage1_bedroom_geometry.yaml, stage1_livingroom.yaml, stage1_diningroom.yaml).
+CONTACT = {"bedroom": (("nightstand",), BEDS, 0.04),
+           "livingroom": (CLASS_GROUPS["seat"], CLASS_GROUPS["table"], 0.11),
+           "diningroom": (CLASS_GROUPS["seat"], CLASS_GROUPS["table"], 0.11)}
 
 
-CONTACT_VOLUME = 0.04
-"""m^3: the largest nightstand-bed overlap of the procedural data, spared by stage 1's collision reward
-(experiments/stage1_bedroom_geometry.yaml)."""
+def in_contact(room: str, a: str, b: str) -> bool:
+    one, other, _ = CONTACT[room]
+    return (a in one and b in other) or (b in one and a in other)
 
 
-def collisions(layouts, chunk: int = 100) -> dict:
+def collisions(layouts, room: str = "bedroom", chunk: int = 100) -> dict:
     pairs: dict[tuple[str, str], list[float]] = {}
-    volumes = []  # of the nightstand-bed pairs (any bed)
-    colliding = ground = only_nightstand_bed = colliding_beyond_contact = 0
+    volumes = []  # of the contact pairs
+    limit = CONTACT[room][2]
+    colliding = ground = only_contact = colliding_beyond_contact = 0
     for s in range(0, len(layouts), chunk):
         part = layouts[s:s + chunk]
         batch = batch_float64(part)
@@ -49,15 +53,15 @@ def collisions(layouts, chunk: int = 100) -> dict:
         for k, lay in enumerate(part):
             for i, j in zip(*np.nonzero(np.triu(hit[k]))):
                 pairs.setdefault(tuple(sorted((lay.labels[i], lay.labels[j]))), []).append(float(vol[k, i, j]))
-                if nightstand_bed(lay.labels[i], lay.labels[j]):
+                if in_contact(room, lay.labels[i], lay.labels[j]):
                     volumes.append(vol[k, i, j])
             for i in range(len(lay)):
                 partners = np.nonzero(hit[k, i])[0]
-                only_nightstand_bed += len(partners) > 0 and all(nightstand_bed(lay.labels[i], lay.labels[j])
-                                                                 for j in partners)
-                colliding_beyond_contact += any(not nightstand_bed(lay.labels[i], lay.labels[j])
-                                                or vol[k, i, j] > CONTACT_VOLUME for j in partners)
-    return {"Col_obj": colliding / ground, "only_nightstand_bed": only_nightstand_bed / ground, "pairs": pairs,
+                only_contact += len(partners) > 0 and all(in_contact(room, lay.labels[i], lay.labels[j])
+                                                          for j in partners)
+                colliding_beyond_contact += any(not in_contact(room, lay.labels[i], lay.labels[j])
+                                                or vol[k, i, j] > limit for j in partners)
+    return {"Col_obj": colliding / ground, "only_contact": only_contact / ground, "pairs": pairs,
             "volumes": np.array(volumes), "Col_obj_beyond_contact": colliding_beyond_contact / ground}
 
 
@@ -69,18 +73,16 @@ def main(args: list[str]) -> None:
         sys.exit(__doc__)
     for arg in args:
         name, _, path = arg.rpartition("=")
-        c = collisions(load_layouts(path, room))
+        c = collisions(load_layouts(path, room), room)
         total = sum(len(v) for v in c["pairs"].values())
         top = sorted(c["pairs"].items(), key=lambda kv: -len(kv[1]))[:5]
         listed = "; ".join(f"{a}-{b} {len(v) / total:.0%} (overlap m^3 median {np.median(v):.3f}, max {max(v):.3f})"
                            for (a, b), v in top)
-        v = c["volumes"]
-        contact = (f", of which nightstand-bed contact only {100 * c['only_nightstand_bed']:.1f} points "
-                   f"(Col_obj with nightstand-bed overlaps up to {CONTACT_VOLUME} m^3 spared: "
-                   f"{100 * c['Col_obj_beyond_contact']:.1f}%) "
-                   f"(nightstand-bed overlap m^3 p50 {np.median(v):.3f} p90 {np.quantile(v, 0.9):.3f} "
-                   f"max {v.max():.3f})"
-                   if room == "bedroom" else "")
+        v = c["volumes"] if len(c["volumes"]) else np.zeros(1)
+        what = "nightstand-bed" if room == "bedroom" else "seat-table"
+        contact = (f", of which {what} contact only {100 * c['only_contact']:.1f} points (Col_obj with {what} "
+                   f"overlaps up to {CONTACT[room][2]} m^3 spared: {100 * c['Col_obj_beyond_contact']:.1f}%) "
+                   f"({what} overlap m^3 p50 {np.median(v):.3f} p90 {np.quantile(v, 0.9):.3f} max {v.max():.3f})")
         print(f"{name or Path(path).stem}: Col_obj {100 * c['Col_obj']:.1f}%{contact}; pairs: {listed}")
 
 

@@ -64,12 +64,14 @@ def test_collision_pairs_separates_nightstand_bed_contact_from_other_collisions(
                           box("chair", 3.6, 0.4, 0.2, 0.2)])
     desk = make_layout([box("desk", 1.0, 1.0, 0.6, 0.3), box("chair", 1.0, 1.4, 0.25, 0.25)])
     res = script.collisions([tucked, desk])
-    assert res["Col_obj"] == pytest.approx(4 / 5) and res["only_nightstand_bed"] == pytest.approx(2 / 5)
+    assert res["Col_obj"] == pytest.approx(4 / 5) and res["only_contact"] == pytest.approx(2 / 5)
     assert res["Col_obj_beyond_contact"] == pytest.approx(2 / 5)  # the contact is spared, the chair is not
     assert {k: len(v) for k, v in res["pairs"].items()} == {("double_bed", "nightstand"): 1, ("chair", "desk"): 1}
     assert res["volumes"] == pytest.approx([0.07 * 0.5 * 0.8], rel=1e-4)
     deeper = make_layout([box("double_bed", 1.5, 1.5, 1.0, 1.0), box("nightstand", 2.6, 1.5, 0.25, 0.25)])
     assert script.collisions([deeper])["Col_obj_beyond_contact"] == 1  # 0.064 m^3: more than the data's contact
+    # in a dining room the seat-table contact is spared up to 0.11 m^3: the chair 0.15 m into its desk (0.045)
+    assert script.collisions([desk], "diningroom")["Col_obj_beyond_contact"] == 0
 
 
 def test_gradient_noise_tells_signal_from_noise():
@@ -304,3 +306,16 @@ def test_repeat_draws_conditions_the_second_draw_on_the_first():
     assert rates["both failed"] == 0.4
     with pytest.raises(ValueError, match="sample the same floors twice"):
         repeat_rates(first, second[:4])
+
+
+def test_chair_placement_measures_each_chairs_gap_and_facing():
+    script = load("chair_placement")
+    room = make_layout([box("dining_table", 2.0, 2.0, 0.6, 0.4),
+                        box("dining_chair", 2.0, 1.4, 0.2, 0.2),                # touching, facing it (+z)
+                        box("dining_chair", 2.0, 2.9, 0.2, 0.2, yaw=np.pi),     # 0.3 m away, facing it
+                        box("dining_chair", 3.5, 0.5, 0.2, 0.2)],               # far from it
+                       room="diningroom")
+    res = script.chair_placement([room, make_layout([box("dining_chair", 1.0, 1.0, 0.2, 0.2)], room="diningroom")])
+    assert res["rooms"] == 1 and res["holds"] == 1.0 and res["chairs"] == 3 and res["at_table"] == 2
+    assert res["touching"] == pytest.approx(1 / 3) and res["near"] == pytest.approx(2 / 3)
+    assert res["facing_near"] == 1.0 and res["gap_median"] == pytest.approx(0.3)
