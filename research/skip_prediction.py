@@ -31,9 +31,14 @@ from iarcs_env.rooms import get_room  # noqa: E402
 from iarcs_env.scene import decode_geometry  # noqa: E402
 
 
+#: feature groups of the x0 loss (:data:`iarcs_env.scene.GEOMETRY_DIM` = 8 geometry features, then the classes)
+GROUPS = {"positions": [0, 2], "elevation": [1], "sizes": [3, 4, 5], "angle": [6, 7]}
+
+
 def centre_errors(prior: ScenePrior, x0: torch.Tensor, floor: torch.Tensor, extents: torch.Tensor,
-                  noise: torch.Tensor, t: int) -> tuple[float, float]:
-    """Median distance (m) of the objects' floor positions in x0_hat and in x_t from those in x0, at timestep t."""
+                  noise: torch.Tensor, t: int) -> tuple[float, float, float, dict]:
+    """Median distance (m) of the objects' floor positions in x0_hat and in x_t from those in x0 at timestep t,
+    the plain x0 loss (mean squared error over all features and slots) and each feature group's share of it."""
     ts = torch.full((len(x0),), t)
     x_t = prior.schedule.q_sample(x0, ts, noise)
     with torch.no_grad():
@@ -44,7 +49,10 @@ def centre_errors(prior: ScenePrior, x0: torch.Tensor, floor: torch.Tensor, exte
     def error(x):  # the data's sizes: only the positions differ
         moved = decode_geometry(torch.cat([x[..., :3], x0[..., 3:]], -1), prior.stats, extents)[0][..., 0:3:2]
         return float((moved - truth).norm(dim=-1)[objects].median())
-    return error(x0_hat), error(x_t)
+    squared = (x0_hat - x0) ** 2
+    groups = dict(GROUPS, classes=list(range(8, x0.shape[-1])))
+    shares = {name: float(squared[..., cols].sum() / squared.sum()) for name, cols in groups.items()}
+    return error(x0_hat), error(x_t), float(squared.mean()), shares
 
 
 def convert(src: str, dst: str) -> None:
@@ -65,7 +73,7 @@ def main(argv=None) -> None:
     err = sub.add_parser("error", help="x0_hat's and x_t's distance from the rooms' objects by t")
     err.add_argument("--config", required=True, help="the prior's pretraining config (its training rooms)")
     err.add_argument("--prior", required=True)
-    err.add_argument("--t", type=int, nargs="+", default=[0, 5, 20, 100, 400])
+    err.add_argument("--t", type=int, nargs="+", default=[0, 20, 100, 400, 700])
     err.add_argument("--batch", type=int, default=128)
     conv = sub.add_parser("convert", help="an x0-prediction prior as a v-prediction one")
     conv.add_argument("src")
@@ -80,10 +88,11 @@ def main(argv=None) -> None:
     data, _, _ = training_data(cfg, log=lambda *a: None, progress=False, with_stats=False)
     batch = draw_batch(data, cfg, get_room(cfg.room), prior.stats, torch.Generator().manual_seed(0), args.batch)
     print(f"{args.prior} ({prior.schedule.config.prediction_type} prediction), {args.batch} training rooms: median "
-          "distance (m) of the objects' centres from the rooms'")
+          "distance (m) of the objects' centres from the rooms', the x0 loss and its shares")
     for t in args.t:
-        hat, noisy = centre_errors(prior, batch.x0, batch.floor, batch.extents, batch.noise, t)
-        print(f"t {t:4d}: x0_hat {hat:.3f}, x_t {noisy:.3f}")
+        hat, noisy, loss, shares = centre_errors(prior, batch.x0, batch.floor, batch.extents, batch.noise, t)
+        print(f"t {t:4d}: x0_hat {hat:.3f}, x_t {noisy:.3f}; x0 loss {loss:.4f} ("
+              + ", ".join(f"{name} {share:.0%}" for name, share in shares.items()) + ")")
 
 
 if __name__ == "__main__":
