@@ -24,6 +24,12 @@ def on_rows(mask: torch.Tensor, per_scene: Callable[..., torch.Tensor], *scenes:
     return scenes[0].new_zeros(mask.shape).index_put((rows,), values.to(scenes[0].dtype))
 
 
+def excess_overlap_volume(placed: torch.Tensor, data: torch.Tensor) -> torch.Tensor:
+    """(B, N, N) relu(A(placed) - A(data)) * H(data) from two :func:`bounds_overlaps` results: each pair's footprint
+    overlap area beyond the data's, times the pair's vertical overlap in the data (m^3)."""
+    return (placed[..., 0] * placed[..., 2] - data[..., 0] * data[..., 2]).clamp_min(0) * data[..., 1]
+
+
 def overlap_excess(spec, stats: DatasetStats, extents: torch.Tensor, weight: float = 1.0,
                    max_timestep: int = NoiseSchedule().num_train_timesteps, spare_contact: bool = False) -> Callable:
     """The ``x0_penalty`` of :meth:`NoiseSchedule.training_loss` for ``overlap_weight``: per scene with
@@ -44,10 +50,9 @@ def overlap_excess(spec, stats: DatasetStats, extents: torch.Tensor, weight: flo
         pairs = (objects[:, :, None] & objects[:, None]).triu(1)
         placed = overlaps(torch.cat([x0_hat[..., :3], x0[..., 3:]], -1), extents)  # predicted positions, data's boxes
         data = overlaps(x0, extents)
-        area = lambda o: o[..., 0] * o[..., 2]  # noqa: E731
-        excess = (area(placed) - area(data)).clamp_min(0) * data[..., 1] * pairs
+        excess = excess_overlap_volume(placed, data) * pairs
         if spare_contact:
-            excess = excess * (area(data) == 0)
+            excess = excess * (data[..., 0] * data[..., 2] == 0)
         return excess.flatten(1).sum(1)
 
     return lambda x0_hat, x0, t: weight * on_rows(t < max_timestep, per_scene, x0_hat, x0, extents)

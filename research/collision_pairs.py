@@ -18,30 +18,36 @@ from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))
 
 from iarcs_env import geometry as geo  # noqa: E402
 from iarcs_env.datasets import load_layouts  # noqa: E402
 from iarcs_env.metrics import batch_float64  # noqa: E402
-from iarcs_env.relations import BEDS, CLASS_GROUPS  # noqa: E402
+from agents.train import load_train_config  # noqa: E402
+from iarcs_env.relations import CLASS_GROUPS  # noqa: E402
 
 
-#: room -> (classes of one side, of the other, the largest overlap (m^3) spared): the contact of the stage-1 configs
-#: (experiments/stage1_bedroom_geometry.yaml, stage1_livingroom.yaml, stage1_diningroom.yaml).
-CONTACT = {"bedroom": (("nightstand",), BEDS, 0.04),
-           "livingroom": (CLASS_GROUPS["seat"], CLASS_GROUPS["table"], 0.11),
-           "diningroom": (CLASS_GROUPS["seat"], CLASS_GROUPS["table"], 0.11)}
+#: The collision reward's ``contact`` of each room's stage-1 config: the pairs it spares, up to its volume.
+STAGE1 = {"bedroom": "stage1_bedroom_geometry.yaml", "livingroom": "stage1_livingroom.yaml",
+          "diningroom": "stage1_diningroom.yaml"}
 
 
-def in_contact(room: str, a: str, b: str) -> bool:
-    one, other, _ = CONTACT[room]
-    return (a in one and b in other) or (b in one and a in other)
+def stage1_contact(room: str) -> dict:
+    return load_train_config(REPO / "experiments" / STAGE1[room]).reward["collision"]["contact"]
+
+
+def in_contact(contact: dict, a: str, b: str) -> bool:
+    """Do classes ``a`` and ``b`` form one of ``contact``'s pairs (class or class-group names, either order)?"""
+    def member(label, name):
+        return label in CLASS_GROUPS.get(name, (name,))
+    return any(member(a, x) and member(b, y) or member(b, x) and member(a, y) for x, y in contact["pairs"])
 
 
 def collisions(layouts, room: str = "bedroom", chunk: int = 100) -> dict:
     pairs: dict[tuple[str, str], list[float]] = {}
     volumes = []  # of the contact pairs
-    limit = CONTACT[room][2]
+    contact = stage1_contact(room)
     colliding = ground = only_contact = colliding_beyond_contact = 0
     for s in range(0, len(layouts), chunk):
         part = layouts[s:s + chunk]
@@ -53,14 +59,14 @@ def collisions(layouts, room: str = "bedroom", chunk: int = 100) -> dict:
         for k, lay in enumerate(part):
             for i, j in zip(*np.nonzero(np.triu(hit[k]))):
                 pairs.setdefault(tuple(sorted((lay.labels[i], lay.labels[j]))), []).append(float(vol[k, i, j]))
-                if in_contact(room, lay.labels[i], lay.labels[j]):
+                if in_contact(contact, lay.labels[i], lay.labels[j]):
                     volumes.append(vol[k, i, j])
             for i in range(len(lay)):
                 partners = np.nonzero(hit[k, i])[0]
-                only_contact += len(partners) > 0 and all(in_contact(room, lay.labels[i], lay.labels[j])
+                only_contact += len(partners) > 0 and all(in_contact(contact, lay.labels[i], lay.labels[j])
                                                           for j in partners)
-                colliding_beyond_contact += any(not in_contact(room, lay.labels[i], lay.labels[j])
-                                                or vol[k, i, j] > limit for j in partners)
+                colliding_beyond_contact += any(not in_contact(contact, lay.labels[i], lay.labels[j])
+                                                or vol[k, i, j] > contact["volume"] for j in partners)
     return {"Col_obj": colliding / ground, "only_contact": only_contact / ground, "pairs": pairs,
             "volumes": np.array(volumes), "Col_obj_beyond_contact": colliding_beyond_contact / ground}
 
@@ -79,9 +85,9 @@ def main(args: list[str]) -> None:
         listed = "; ".join(f"{a}-{b} {len(v) / total:.0%} (overlap m^3 median {np.median(v):.3f}, max {max(v):.3f})"
                            for (a, b), v in top)
         v = c["volumes"] if len(c["volumes"]) else np.zeros(1)
-        what = "nightstand-bed" if room == "bedroom" else "seat-table"
+        what = "-".join(stage1_contact(room)["pairs"][0])
         contact = (f", of which {what} contact only {100 * c['only_contact']:.1f} points (Col_obj with {what} "
-                   f"overlaps up to {CONTACT[room][2]} m^3 spared: {100 * c['Col_obj_beyond_contact']:.1f}%) "
+                   f"overlaps up to {stage1_contact(room)['volume']} m^3 spared: {100 * c['Col_obj_beyond_contact']:.1f}%) "
                    f"({what} overlap m^3 p50 {np.median(v):.3f} p90 {np.quantile(v, 0.9):.3f} max {v.max():.3f})")
         print(f"{name or Path(path).stem}: Col_obj {100 * c['Col_obj']:.1f}%{contact}; pairs: {listed}")
 

@@ -22,6 +22,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from agents.denoiser import ScenePrior  # noqa: E402
 from agents.pretrain import draw_batch, load_config  # noqa: E402
 from agents.pretrain_data import training_data  # noqa: E402
+from agents.x0_losses import excess_overlap_volume  # noqa: E402
 from iarcs_env.geometry import bounds_overlaps  # noqa: E402
 from iarcs_env.relation_fidelity import CHAIRS  # noqa: E402
 from iarcs_env.rooms import get_room  # noqa: E402
@@ -65,10 +66,10 @@ def main(argv=None) -> None:
         d_trans, _, _ = decode_geometry(batch.x0, stats, batch.extents)
         trans = trans.detach().requires_grad_(True)
         data_ov = bounds_overlaps(d_trans, half, yaws)
-        area = lambda o: o[..., 0] * o[..., 2]  # noqa: E731
         pairs = objects[:, :, None] & objects[:, None] & ~torch.eye(objects.shape[1], dtype=torch.bool)
         if args.spare_contact:
-            pairs = pairs & (area(data_ov) == 0)
+            pairs = pairs & (data_ov[..., 0] * data_ov[..., 2] == 0)
+        excess_volume = excess_overlap_volume(bounds_overlaps(trans, half, yaws), data_ov)  # the loss's, per pair
         # outward unit vector of each chair from the nearest dining table (data positions), 0 without a table
         dist = (d_trans[:, :, None, 0:3:2] - d_trans[:, None, :, 0:3:2]).norm(dim=-1)
         dist = torch.where(table[:, None, :], dist, torch.full_like(dist, float("inf")))
@@ -83,9 +84,8 @@ def main(argv=None) -> None:
             sel = pairs & (chair[:, :, None] & partner[:, None] | partner[:, :, None] & chair[:, None])
             if name == "other":  # the rest of the charge: pairs without a chair too
                 sel = pairs & ~(chair[:, :, None] | chair[:, None]) | sel
-            placed = bounds_overlaps(trans, half, yaws)
-            excess = ((area(placed) - area(data_ov)).clamp_min(0) * data_ov[..., 1] * sel).sum() / 2  # i<j once
-            (grad,) = torch.autograd.grad(excess, trans)
+            excess = (excess_volume * sel).sum() / 2  # each pair i<j once
+            (grad,) = torch.autograd.grad(excess, trans, retain_graph=True)
             pull = -grad[..., 0:3:2][has_table]  # m^3 per m
             out_pull = (pull * outward[has_table]).sum(-1).mean()
             along_pull = (pull * along[has_table]).sum(-1).abs().mean()
