@@ -13,7 +13,10 @@ most is, along the walls; its vertical extent carries no gradient: two objects o
 whatever their heights, so flattening them shrinks the number, never the collision), A_i the area (m^2) of box
 i's footprint, shrunk by ``out_of_bound_shrink`` per side (R_out's 0.05 m by default), outside the floor polygon,
 and bottom_i the height (m) of a ground object's bottom above or below the floor; for a pair that the collision
-reward's ``contact`` spares (a chair pushed under its table), V_ij less that volume, at least 0. w_vol is
+reward's ``contact`` spares (a chair pushed under its table), V_ij less that volume, at least 0; or, with
+``contact_gap_weight`` w_gap > 0, w_gap |d_ij - CONTACT_CLEARANCE| while their bounds' signed distance d_ij (m,
+negative when they overlap) is under ``CONTACT_REACH``: a seat at its table is drawn to just short of it, not
+only kept from going under it too far. w_vol is
 ``overlap_weight`` (1 by default), w_out ``out_of_bound_weight``, w_floor the weight of the run's ``floor_contact``
 reward (0 without one: an adapter that moves objects on the floor only cannot change it). Classes come from
 x0_hat's arg-max (no gradient), or are the rooms' given ones for an adapter with required objects.
@@ -37,6 +40,7 @@ import torch
 from tensordict import TensorDict
 
 from iarcs_env import geometry as geo
+from iarcs_env.relation_fidelity import CHAIR_GAP
 from iarcs_env.scene import SceneBatch, decode_geometry, floor_half_extents
 
 from rewards.universal import contact_pairs
@@ -44,31 +48,49 @@ from rewards.universal import contact_pairs
 from . import distributed
 from .ddpo import DDPO
 
+CONTACT_REACH = CHAIR_GAP
+"""m: a pair of the collision reward's ``contact`` classes whose bounds are closer than this is drawn together by
+``contact_gap_weight`` (the chairs_at_dining_table relation's reach)."""
+CONTACT_CLEARANCE = 0.05
+"""m: the gap ``contact_gap_weight`` draws such a pair to: short of touching, so that the sampler's last steps
+do not push one into the other (Col_obj counts any overlap)."""
+
 
 def physics_penalty(x0: torch.Tensor, stats, floors, out_of_bound_weight: float = 1.0,
                     floor_weight: float = 0.0, overlap_weight: float = 1.0,
-                    out_of_bound_shrink: float = geo.OUT_OF_BOUND_SHRINK, contact: dict | None = None) -> torch.Tensor:
+                    out_of_bound_shrink: float = geo.OUT_OF_BOUND_SHRINK, contact: dict | None = None,
+                    contact_gap_weight: float = 0.0) -> torch.Tensor:
     """(B,) ``overlap_weight`` times the overlap volume (m^3) of every pair of ground objects' axis-aligned bounds
     plus ``out_of_bound_weight`` times the out-of-bound area (m^2, footprints shrunk by ``out_of_bound_shrink``
     m, R_out's 0.05 m by default) of every object plus ``floor_weight`` times the ground objects' distances (m)
     from the floor, of model features ``x0`` (B, N, 8 + K) on ``floors``; differentiable in the geometry.
     ``contact``: the collision reward's option; a pair of its classes is charged only the overlap beyond its
-    volume."""
+    volume, or with ``contact_gap_weight`` > 0 that weight times the distance of their bounds' signed distance
+    from ``CONTACT_CLEARANCE`` while it is under ``CONTACT_REACH`` (module doc)."""
     spec = stats.spec
     trans, half, yaws = decode_geometry(x0, stats, floor_half_extents(floors).to(x0))
     labels = x0[..., 8:].argmax(-1)
     valid = labels != spec.empty_index
     ground = torch.tensor(spec.ground_mask(), device=x0.device)[labels]
-    overlap = geo.bounds_overlaps(trans, half, yaws)
+    separation = geo.bounds_separations(trans, half, yaws)
+    overlap = separation.clamp_min(0)
     pairs = (ground[:, :, None] & ground[:, None]).triu(1)
     volume = overlap[..., 0] * overlap[..., 1].detach() * overlap[..., 2]
+    gaps = volume.new_zeros(len(x0))
     if contact:
         spared = contact_pairs(labels, valid, spec, contact)
-        volume = torch.where(spared, (volume - contact["volume"]).clamp_min(0.0), volume)
+        if contact_gap_weight:
+            distance = -separation[..., 0:3:2].min(-1).values
+            drawn = spared & (distance < CONTACT_REACH) & pairs
+            gaps = ((distance - CONTACT_CLEARANCE).abs() * drawn).sum((1, 2))
+            volume = torch.where(spared, torch.zeros_like(volume), volume)
+        else:
+            volume = torch.where(spared, (volume - contact["volume"]).clamp_min(0.0), volume)
     volume = (volume * pairs).sum((1, 2))
     outside = geo.box_out_of_floor_area(trans, half, yaws, floors, valid, out_of_bound_shrink).sum(1)
     off_floor = geo.floor_gaps(trans, half, ground).sum(1)
-    return overlap_weight * volume + out_of_bound_weight * outside.to(volume) + floor_weight * off_floor
+    return (overlap_weight * volume + contact_gap_weight * gaps + out_of_bound_weight * outside.to(volume)
+            + floor_weight * off_floor)
 
 
 def task_surrogate(task_reward, x0: torch.Tensor, stats, floors) -> tuple[torch.Tensor, torch.Tensor, float]:
@@ -85,7 +107,8 @@ def task_surrogate(task_reward, x0: torch.Tensor, stats, floors) -> tuple[torch.
 class PhysicsGradient(DDPO):
     """The physics gradient (module doc) with :class:`DDPO`'s surface: ``learn``, ``save``/``load``,
     callbacks. Uses ``learning_rate``, ``minibatch_size``, ``num_inner_epochs``, ``max_grad_norm``,
-    ``gradient_steps``, ``overlap_weight``, ``out_of_bound_weight``, ``out_of_bound_shrink`` and ``kl_coef`` of
+    ``gradient_steps``, ``overlap_weight``, ``contact_gap_weight``, ``out_of_bound_weight``, ``out_of_bound_shrink``
+    and ``kl_coef`` of
     :class:`~agents.ddpo.DDPOConfig`; the env's reward is logged, not optimised, but for a stage-2 task reward, whose
     gradient joins (module doc)."""
 
@@ -129,7 +152,8 @@ class PhysicsGradient(DDPO):
                 x0_hat = x0_hat.cpu()
                 loss = physics_penalty(x0_hat, venv.stats, floors, out_of_bound_weight=cfg.out_of_bound_weight,
                                        floor_weight=floor_weight, overlap_weight=cfg.overlap_weight,
-                                       out_of_bound_shrink=cfg.out_of_bound_shrink, contact=contact).mean()
+                                       out_of_bound_shrink=cfg.out_of_bound_shrink, contact=contact,
+                                       contact_gap_weight=cfg.contact_gap_weight).mean()
                 info = {"physics": loss.item()}
                 if task is not None:
                     surrogate, values, size = task_surrogate(task[0], x0_hat, venv.stats, floors)

@@ -188,10 +188,16 @@ def bounds_overlaps(translations: torch.Tensor, half_sizes: torch.Tensor, yaws: 
     """``(B, N, N, 3)`` overlap lengths along x, y and z of each pair of boxes' axis-aligned bounds (the bounds
     of the turned footprints): differentiable, exact for axis-aligned furniture, for the losses that move
     boxes apart. :func:`box_overlap_volumes` is the exact oriented measure the metrics use."""
+    return bounds_separations(translations, half_sizes, yaws).clamp_min(0)
+
+
+def bounds_separations(translations: torch.Tensor, half_sizes: torch.Tensor, yaws: torch.Tensor) -> torch.Tensor:
+    """:func:`bounds_overlaps` before clamping: ``(B, N, N, 3)``, positive where the bounds overlap along an axis,
+    minus the gap between them (m) where they do not."""
     reach = footprint_reach(half_sizes[..., 0:3:2], torch.cos(yaws), torch.sin(yaws))
     bound = torch.stack([reach[..., 0], half_sizes[..., 1], reach[..., 1]], -1)
     lo, hi = translations - bound, translations + bound
-    return (torch.minimum(hi[:, :, None], hi[:, None]) - torch.maximum(lo[:, :, None], lo[:, None])).clamp_min(0)
+    return torch.minimum(hi[:, :, None], hi[:, None]) - torch.maximum(lo[:, :, None], lo[:, None])
 
 
 @single_thread()

@@ -215,6 +215,29 @@ def test_physics_penalty_is_the_overlap_volume_plus_the_out_of_bound_area_and_de
         pytest.approx(float(outside), rel=1e-4)
     other = physics_penalty(x0.detach(), stats, batch.floors, contact={**spared, "pairs": [["nightstand", "bed"]]})
     assert other.item() == pytest.approx(penalty.item(), rel=1e-6)
+    apart = SceneBatch.from_layouts([make_layout([box("dining_chair", 1.0, 1.0, 0.25, 0.25),
+                                                  box("dining_table", 1.75, 1.0, 0.3, 0.4),  # 0.2 m from the chair
+                                                  box("dining_chair", 1.0, 2.5, 0.25, 0.25)],  # 1.05 m from it
+                                                 room="diningroom").centred()])
+    dining, at_table = default_stats("diningroom"), {"pairs": [["seat", "table"]], "volume": 0.1}
+    x_apart = apart.encode(dining).clone().requires_grad_(True)
+    alone = physics_penalty(x_apart, dining, apart.floors, contact=at_table)
+    drawn = physics_penalty(x_apart, dining, apart.floors, contact=at_table, contact_gap_weight=2.0)
+    assert alone.item() == pytest.approx(0.0, abs=1e-6)  # nothing overlaps, nothing is out of bound
+    # only the near chair (0.2 m from a 0.05 m gap): the far one is not at the table
+    assert drawn.item() == pytest.approx(2 * 0.15, abs=1e-3)
+    drawn.sum().backward()
+    chair_x, table_x = (x_apart.grad[0, i, 0] for i in (0, 1))
+    assert chair_x < 0 < table_x and x_apart.grad[0, 2, :3].abs().sum() == 0  # drawn together; the far one left
+    under = SceneBatch.from_layouts([make_layout([box("dining_chair", 1.6, 1.0, 0.25, 0.25),  # 0.4 m into the table
+                                                  box("dining_table", 1.75, 1.0, 0.3, 0.4)], room="diningroom")])
+    x_under = under.encode(dining).clone().requires_grad_(True)
+    spared = physics_penalty(x_under, dining, under.floors, contact=at_table)
+    assert spared.item() == pytest.approx(0.4 * 0.8 * 0.5 - 0.1, abs=1e-3)  # the overlap beyond the contact's
+    pushed = physics_penalty(x_under, dining, under.floors, contact=at_table, contact_gap_weight=2.0)
+    assert pushed.item() == pytest.approx(2 * (0.4 + 0.05), abs=1e-3)  # in place of the overlap
+    pushed.sum().backward()
+    assert x_under.grad[0, 0, 0] > 0 > x_under.grad[0, 1, 0]  # the chair is pushed out, back to the 0.05 m gap
     gap = float(geo.floor_gaps(scene.translations, scene.half_sizes, scene.ground_mask).sum())
     assert gap == pytest.approx(0.2, abs=1e-3)
     lifted = physics_penalty(x0.detach(), stats, batch.floors, floor_weight=10.0)
