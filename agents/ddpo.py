@@ -80,6 +80,12 @@ class DDPOConfig:
     gradient of the physics penalty (and of a stage-2 task reward)."""
     overlap_weight: float = 1.0
     """``physics-gradient`` only: the weight of the ground objects' overlap volume (m^3)."""
+    overlap_measure: str = "volume"
+    """``physics-gradient`` only: what a pair of overlapping ground objects is charged: ``volume`` (m^3) or
+    ``depth``, the penetration (m) along the axis that separates them soonest, plus 0.02 m. Volume's pull fades
+    with the overlap (two corners touching feel almost none); depth pushes every overlapping pair out alike, as
+    Col_obj counts them. A pair of the collision reward's ``contact`` classes is then charged only through
+    ``contact_gap_weight``."""
     contact_gap_weight: float = 0.0
     """``physics-gradient`` only: > 0 charges a pair of the collision reward's ``contact`` classes closer than 0.6 m
     this weight times its distance (m) from a 0.05 m gap, in place of its overlap (a seat near its table is drawn

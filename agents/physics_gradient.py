@@ -10,7 +10,8 @@ Per stored state x_t of the last ``gradient_steps`` stochastic steps of a rollou
 
 with V_ij the overlap volume of the axis-aligned bounds of boxes i and j (exact for axis-aligned furniture, as
 most is, along the walls; its vertical extent carries no gradient: two objects on the floor overlap in height
-whatever their heights, so flattening them shrinks the number, never the collision), A_i the area (m^2) of box
+whatever their heights, so flattening them shrinks the number, never the collision; with ``overlap_measure:
+depth``, the penetration along the axis that separates them soonest, plus ``DEPTH_MARGIN``), A_i the area (m^2) of box
 i's footprint, shrunk by ``out_of_bound_shrink`` per side (R_out's 0.05 m by default), outside the floor polygon,
 and bottom_i the height (m) of a ground object's bottom above or below the floor; for a pair that the collision
 reward's ``contact`` spares (a chair pushed under its table), V_ij less that volume, at least 0; or, with
@@ -51,6 +52,8 @@ from .ddpo import DDPO
 CONTACT_REACH = CHAIR_GAP
 """m: a pair of the collision reward's ``contact`` classes whose bounds are closer than this is drawn together by
 ``contact_gap_weight`` (the chairs_at_dining_table relation's reach)."""
+DEPTH_MARGIN = 0.02
+"""m: with ``overlap_measure: depth``, pairs closer than this count as overlapping (pushed apart to it)."""
 CONTACT_CLEARANCE = 0.05
 """m: the gap ``contact_gap_weight`` draws such a pair to: short of touching, so that the sampler's last steps
 do not push one into the other (Col_obj counts any overlap)."""
@@ -59,7 +62,7 @@ do not push one into the other (Col_obj counts any overlap)."""
 def physics_penalty(x0: torch.Tensor, stats, floors, out_of_bound_weight: float = 1.0,
                     floor_weight: float = 0.0, overlap_weight: float = 1.0,
                     out_of_bound_shrink: float = geo.OUT_OF_BOUND_SHRINK, contact: dict | None = None,
-                    contact_gap_weight: float = 0.0) -> torch.Tensor:
+                    contact_gap_weight: float = 0.0, overlap_measure: str = "volume") -> torch.Tensor:
     """(B,) ``overlap_weight`` times the overlap volume (m^3) of every pair of ground objects' axis-aligned bounds
     plus ``out_of_bound_weight`` times the out-of-bound area (m^2, footprints shrunk by ``out_of_bound_shrink``
     m, R_out's 0.05 m by default) of every object plus ``floor_weight`` times the ground objects' distances (m)
@@ -75,7 +78,12 @@ def physics_penalty(x0: torch.Tensor, stats, floors, out_of_bound_weight: float 
     separation = geo.bounds_separations(trans, half, yaws)
     overlap = separation.clamp_min(0)
     pairs = (ground[:, :, None] & ground[:, None]).triu(1)
-    volume = overlap[..., 0] * overlap[..., 1].detach() * overlap[..., 2]
+    if overlap_measure == "volume":
+        volume = overlap[..., 0] * overlap[..., 1].detach() * overlap[..., 2]
+    elif overlap_measure == "depth":
+        volume = (separation[..., 0:3:2].min(-1).values + DEPTH_MARGIN).clamp_min(0) * (overlap[..., 1] > 0)
+    else:
+        raise ValueError(f"overlap_measure must be 'volume' or 'depth', got {overlap_measure!r}")
     gaps = volume.new_zeros(len(x0))
     if contact:
         spared = contact_pairs(labels, valid, spec, contact)
@@ -85,7 +93,8 @@ def physics_penalty(x0: torch.Tensor, stats, floors, out_of_bound_weight: float 
             gaps = ((distance - CONTACT_CLEARANCE).abs() * drawn).sum((1, 2))
             volume = torch.where(spared, torch.zeros_like(volume), volume)
         else:
-            volume = torch.where(spared, (volume - contact["volume"]).clamp_min(0.0), volume)
+            spared_volume = contact["volume"] if overlap_measure == "volume" else float("inf")
+            volume = torch.where(spared, (volume - spared_volume).clamp_min(0.0), volume)
     volume = (volume * pairs).sum((1, 2))
     outside = geo.box_out_of_floor_area(trans, half, yaws, floors, valid, out_of_bound_shrink).sum(1)
     off_floor = geo.floor_gaps(trans, half, ground).sum(1)
@@ -153,7 +162,8 @@ class PhysicsGradient(DDPO):
                 loss = physics_penalty(x0_hat, venv.stats, floors, out_of_bound_weight=cfg.out_of_bound_weight,
                                        floor_weight=floor_weight, overlap_weight=cfg.overlap_weight,
                                        out_of_bound_shrink=cfg.out_of_bound_shrink, contact=contact,
-                                       contact_gap_weight=cfg.contact_gap_weight).mean()
+                                       contact_gap_weight=cfg.contact_gap_weight,
+                                       overlap_measure=cfg.overlap_measure).mean()
                 info = {"physics": loss.item()}
                 if task is not None:
                     surrogate, values, size = task_surrogate(task[0], x0_hat, venv.stats, floors)

@@ -238,6 +238,11 @@ def test_physics_penalty_is_the_overlap_volume_plus_the_out_of_bound_area_and_de
     assert pushed.item() == pytest.approx(2 * (0.4 + 0.05), abs=1e-3)  # in place of the overlap
     pushed.sum().backward()
     assert x_under.grad[0, 0, 0] > 0 > x_under.grad[0, 1, 0]  # the chair is pushed out, back to the 0.05 m gap
+    depth = physics_penalty(x_under.detach(), dining, under.floors, overlap_measure="depth")
+    assert depth.item() == pytest.approx(0.4 + 0.02, abs=1e-3)  # out along x, the shorter way, to a 0.02 m gap
+    assert physics_penalty(x_under.detach(), dining, under.floors, overlap_measure="depth", contact=at_table).item() == 0
+    with pytest.raises(ValueError, match="overlap_measure"):
+        physics_penalty(x_under.detach(), dining, under.floors, overlap_measure="area")
     gap = float(geo.floor_gaps(scene.translations, scene.half_sizes, scene.ground_mask).sum())
     assert gap == pytest.approx(0.2, abs=1e-3)
     lifted = physics_penalty(x0.detach(), stats, batch.floors, floor_weight=10.0)
