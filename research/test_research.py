@@ -319,3 +319,19 @@ def test_chair_placement_measures_each_chairs_gap_and_facing():
     assert res["rooms"] == 1 and res["holds"] == 1.0 and res["chairs"] == 3 and res["at_table"] == 2
     assert res["touching"] == pytest.approx(1 / 3) and res["near"] == pytest.approx(2 / 3)
     assert res["facing_near"] == 1.0 and res["gap_median"] == pytest.approx(0.3)
+
+
+def test_gradient_vs_count_compares_prior_and_adapter_on_the_same_noise(tmp_path):
+    from conftest import write_tiny_train_config
+    from experiments.cli import main
+
+    config = write_tiny_train_config(tmp_path, algorithm="physics-gradient", epochs=1,
+                                     ddpo={"samples_per_floor": 4, "minibatch_size": 8, "gradient_steps": 2,
+                                           "learning_rate": 0.05, "overlap_measure": "depth"})
+    assert main(["train", "--config", str(config)]) == 0
+    prior, adapter = load("gradient_vs_count").compare(str(tmp_path / "run"), num_floors=4)
+    assert (prior["policy"], adapter["policy"]) == ("prior", "adapter")
+    for row in (prior, adapter):
+        assert len(row["x0_hat"]) == 4 and row["final"] > 0 and 0 <= row["Col_obj"] <= 1
+    again = load("gradient_vs_count").compare(str(tmp_path / "run"), num_floors=4)[0]
+    assert again == prior  # same floors, same noise
