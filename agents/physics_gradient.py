@@ -63,8 +63,8 @@ def physics_penalty(x0: torch.Tensor, stats, floors, out_of_bound_weight: float 
                     floor_weight: float = 0.0, overlap_weight: float = 1.0,
                     out_of_bound_shrink: float = geo.OUT_OF_BOUND_SHRINK, contact: dict | None = None,
                     contact_gap_weight: float = 0.0, overlap_measure: str = "volume") -> torch.Tensor:
-    """(B,) ``overlap_weight`` times the overlap volume (m^3) of every pair of ground objects' axis-aligned bounds
-    plus ``out_of_bound_weight`` times the out-of-bound area (m^2, footprints shrunk by ``out_of_bound_shrink``
+    """(B,) ``overlap_weight`` times the overlap volume (m^3; or depth, ``overlap_measure``) of every pair of ground
+    objects' axis-aligned bounds plus ``out_of_bound_weight`` times the out-of-bound area (m^2, footprints shrunk by ``out_of_bound_shrink``
     m, R_out's 0.05 m by default) of every object plus ``floor_weight`` times the ground objects' distances (m)
     from the floor, of model features ``x0`` (B, N, 8 + K) on ``floors``; differentiable in the geometry.
     ``contact``: the collision reward's option; a pair of its classes is charged only the overlap beyond its
@@ -79,26 +79,26 @@ def physics_penalty(x0: torch.Tensor, stats, floors, out_of_bound_weight: float 
     overlap = separation.clamp_min(0)
     pairs = (ground[:, :, None] & ground[:, None]).triu(1)
     if overlap_measure == "volume":
-        volume = overlap[..., 0] * overlap[..., 1].detach() * overlap[..., 2]
+        charge = overlap[..., 0] * overlap[..., 1].detach() * overlap[..., 2]
     elif overlap_measure == "depth":
-        volume = (separation[..., 0:3:2].min(-1).values + DEPTH_MARGIN).clamp_min(0) * (overlap[..., 1] > 0)
+        charge = (separation[..., 0:3:2].min(-1).values + DEPTH_MARGIN).clamp_min(0) * (overlap[..., 1] > 0)
     else:
         raise ValueError(f"overlap_measure must be 'volume' or 'depth', got {overlap_measure!r}")
-    gaps = volume.new_zeros(len(x0))
+    gaps = charge.new_zeros(len(x0))
     if contact:
         spared = contact_pairs(labels, valid, spec, contact)
         if contact_gap_weight:
             distance = -separation[..., 0:3:2].min(-1).values
             drawn = spared & (distance < CONTACT_REACH) & pairs
             gaps = ((distance - CONTACT_CLEARANCE).abs() * drawn).sum((1, 2))
-            volume = torch.where(spared, torch.zeros_like(volume), volume)
+            charge = torch.where(spared, torch.zeros_like(charge), charge)
         else:
             spared_volume = contact["volume"] if overlap_measure == "volume" else float("inf")
-            volume = torch.where(spared, (volume - spared_volume).clamp_min(0.0), volume)
-    volume = (volume * pairs).sum((1, 2))
+            charge = torch.where(spared, (charge - spared_volume).clamp_min(0.0), charge)
+    charge = (charge * pairs).sum((1, 2))
     outside = geo.box_out_of_floor_area(trans, half, yaws, floors, valid, out_of_bound_shrink).sum(1)
     off_floor = geo.floor_gaps(trans, half, ground).sum(1)
-    return (overlap_weight * volume + contact_gap_weight * gaps + out_of_bound_weight * outside.to(volume)
+    return (overlap_weight * charge + contact_gap_weight * gaps + out_of_bound_weight * outside.to(charge)
             + floor_weight * off_floor)
 
 
@@ -116,10 +116,9 @@ def task_surrogate(task_reward, x0: torch.Tensor, stats, floors) -> tuple[torch.
 class PhysicsGradient(DDPO):
     """The physics gradient (module doc) with :class:`DDPO`'s surface: ``learn``, ``save``/``load``,
     callbacks. Uses ``learning_rate``, ``minibatch_size``, ``num_inner_epochs``, ``max_grad_norm``,
-    ``gradient_steps``, ``overlap_weight``, ``contact_gap_weight``, ``out_of_bound_weight``, ``out_of_bound_shrink``
-    and ``kl_coef`` of
-    :class:`~agents.ddpo.DDPOConfig`; the env's reward is logged, not optimised, but for a stage-2 task reward, whose
-    gradient joins (module doc)."""
+    ``gradient_steps``, ``overlap_weight``, ``overlap_measure``, ``contact_gap_weight``, ``out_of_bound_weight``,
+    ``out_of_bound_shrink`` and ``kl_coef`` of :class:`~agents.ddpo.DDPOConfig`; the env's reward is logged, not
+    optimised, but for a stage-2 task reward, whose gradient joins (module doc)."""
 
     name = "PHYSICS-GRADIENT"
 
