@@ -67,9 +67,9 @@ def physics_penalty(x0: torch.Tensor, stats, floors, out_of_bound_weight: float 
     objects' axis-aligned bounds plus ``out_of_bound_weight`` times the out-of-bound area (m^2, footprints shrunk by
     ``out_of_bound_shrink`` m, R_out's 0.05 m by default) of every object plus ``floor_weight`` times the ground
     objects' distances (m) from the floor, of model features ``x0`` (B, N, 8 + K) on ``floors``; differentiable in
-    the geometry. ``contact``: the collision reward's option; a pair of its classes is charged only the overlap beyond its
-    volume, or with ``contact_gap_weight`` > 0 that weight times the distance of their bounds' signed distance
-    from ``CONTACT_CLEARANCE`` while it is under ``CONTACT_REACH`` (module doc)."""
+    the geometry. ``contact``: the collision reward's option; a pair of its classes is charged only the overlap
+    beyond its volume, or with ``contact_gap_weight`` > 0 that weight times the distance of their bounds' signed
+    distance from ``CONTACT_CLEARANCE`` while it is under ``CONTACT_REACH`` (module doc)."""
     spec = stats.spec
     trans, half, yaws = decode_geometry(x0, stats, floor_half_extents(floors).to(x0))
     labels = x0[..., 8:].argmax(-1)
