@@ -335,3 +335,18 @@ def test_gradient_vs_count_compares_prior_and_adapter_on_the_same_noise(tmp_path
         assert len(row["x0_hat"]) == 4 and row["final"] > 0 and 0 <= row["Col_obj"] <= 1
     again = load("gradient_vs_count").compare(str(tmp_path / "run"), num_floors=4)[0]
     assert again == prior  # same floors, same noise
+
+
+def test_metric_trade_reads_reports_in_percent_and_draws_them(tmp_path):
+    mt = load("metric_trade")
+    for name, col, reach in (("a", 0.5, 0.8), ("b", 0.25, 0.7)):
+        (tmp_path / f"{name}.json").write_text(json.dumps({"Col_obj": col, "R_reach": reach}))
+    pts = mt.points([f"prior={tmp_path / 'a.json'}", f"depth, 30 epochs={tmp_path / 'b.json'}"], "Col_obj", "R_reach")
+    assert pts == [("prior", 50.0, 80.0), ("depth, 30 epochs", 25.0, 70.0)]  # a label may hold commas and spaces
+    from PIL import Image
+
+    png = mt.plot(pts, "Col_obj", "R_reach", str(tmp_path / "trade.png"))
+    pixels = Image.open(png).convert("L")
+    assert pixels.size == (720, 440) and pixels.getextrema() == (0, 255)  # something drawn on white
+    with pytest.raises(SystemExit, match="no R_walkable"):
+        mt.points([f"a={tmp_path / 'a.json'}"], "Col_obj", "R_walkable")
