@@ -78,23 +78,23 @@ def physics_penalty(x0: torch.Tensor, stats, floors, out_of_bound_weight: float 
     separation = geo.bounds_separations(trans, half, yaws)
     overlap = separation.clamp_min(0)
     pairs = (ground[:, :, None] & ground[:, None]).triu(1)
+    sooner = separation[..., 0:3:2].min(-1).values  # overlap along the axis that parts the pair soonest; -gap
     if overlap_measure == "volume":
         charge = overlap[..., 0] * overlap[..., 1].detach() * overlap[..., 2]
     elif overlap_measure == "depth":
-        charge = (separation[..., 0:3:2].min(-1).values + DEPTH_MARGIN).clamp_min(0) * (overlap[..., 1] > 0)
+        charge = (sooner + DEPTH_MARGIN).clamp_min(0) * (overlap[..., 1] > 0)
     else:
         raise ValueError(f"overlap_measure must be 'volume' or 'depth', got {overlap_measure!r}")
     gaps = charge.new_zeros(len(x0))
     if contact:
         spared = contact_pairs(labels, valid, spec, contact)
         if contact_gap_weight:
-            distance = -separation[..., 0:3:2].min(-1).values
-            drawn = spared & (distance < CONTACT_REACH) & pairs
-            gaps = ((distance - CONTACT_CLEARANCE).abs() * drawn).sum((1, 2))
-            charge = torch.where(spared, torch.zeros_like(charge), charge)
-        else:
-            spared_volume = contact["volume"] if overlap_measure == "volume" else float("inf")
-            charge = torch.where(spared, (charge - spared_volume).clamp_min(0.0), charge)
+            drawn = spared & (-sooner < CONTACT_REACH) & pairs
+            gaps = ((-sooner - CONTACT_CLEARANCE).abs() * drawn).sum((1, 2))
+        if overlap_measure == "volume" and not contact_gap_weight:
+            charge = torch.where(spared, (charge - contact["volume"]).clamp_min(0.0), charge)
+        else:  # the pair is charged through contact_gap_weight only
+            charge = charge.masked_fill(spared, 0.0)
     charge = (charge * pairs).sum((1, 2))
     outside = geo.box_out_of_floor_area(trans, half, yaws, floors, valid, out_of_bound_shrink).sum(1)
     off_floor = geo.floor_gaps(trans, half, ground).sum(1)
