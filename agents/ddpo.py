@@ -90,6 +90,10 @@ class DDPOConfig:
     """``physics-gradient`` only: > 0 charges a pair of the collision reward's ``contact`` classes closer than 0.6 m
     this weight times its distance (m) from a 0.05 m gap, in place of its overlap (a seat near its table is drawn
     to it without entering it)."""
+    reach_weight: float = 0.0
+    """``physics-gradient`` only: > 0 charges every ground object out of R_reach's reach this weight times how much
+    its widest free path is too narrow (m: the agent radius, 0.3 m, less the path's clearance at its narrowest;
+    :func:`iarcs_env.clearance.reach_clearance`): the objects that close a walkway move to open it."""
     out_of_bound_weight: float = 1.0
     """``physics-gradient`` only: the weight of the out-of-bound area (m^2) next to the overlap volume (m^3)."""
     out_of_bound_shrink: float = OUT_OF_BOUND_SHRINK

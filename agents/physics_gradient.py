@@ -7,6 +7,7 @@ Per stored state x_t of the last ``gradient_steps`` stochastic steps of a rollou
 
     loss = mean over scenes of  w_vol sum_{i<j ground} V_ij(x0_hat(x_t)) + w_out sum_i A_i(x0_hat(x_t))
                                 + w_floor sum_{i ground} |bottom_i(x0_hat(x_t))|
+                                + w_reach sum_{i ground} max(0, r - c_i(x0_hat(x_t)))
 
 with V_ij the overlap volume of the axis-aligned bounds of boxes i and j (exact for axis-aligned furniture, as
 most is, along the walls; its vertical extent carries no gradient: two objects on the floor overlap in height
@@ -19,7 +20,9 @@ reward's ``contact`` spares (a chair pushed under its table), V_ij less that vol
 negative when they overlap) is under ``CONTACT_REACH``: a seat at its table is drawn to just short of it, not
 only kept from going under it too far. w_vol is
 ``overlap_weight`` (1 by default), w_out ``out_of_bound_weight``, w_floor the weight of the run's ``floor_contact``
-reward (0 without one: an adapter that moves objects on the floor only cannot change it). Classes come from
+reward (0 without one: an adapter that moves objects on the floor only cannot change it), and c_i the clearance
+(m) of the widest free path to object i (:func:`iarcs_env.clearance.reach_clearance`; R_reach counts it reached
+when c_i >= r, the agent radius 0.3 m), weighed by w_reach = ``reach_weight`` (0 by default). Classes come from
 x0_hat's arg-max (no gradient), or are the rooms' given ones for an adapter with required objects.
 A policy gradient from 32 scenes an epoch has to discover, scene by scene, which way separates two objects;
 this gradient says it for every pair. It uses :class:`~agents.ddpo.DDPO`'s rollouts, evaluation, checkpoints
@@ -41,6 +44,7 @@ import torch
 from tensordict import TensorDict
 
 from iarcs_env import geometry as geo
+from iarcs_env.clearance import reach_clearance
 from iarcs_env.relation_fidelity import CHAIR_GAP
 from iarcs_env.scene import SceneBatch, decode_geometry, floor_half_extents
 
@@ -62,14 +66,16 @@ do not push one into the other (Col_obj counts any overlap)."""
 def physics_penalty(x0: torch.Tensor, stats, floors, out_of_bound_weight: float = 1.0,
                     floor_weight: float = 0.0, overlap_weight: float = 1.0,
                     out_of_bound_shrink: float = geo.OUT_OF_BOUND_SHRINK, contact: dict | None = None,
-                    contact_gap_weight: float = 0.0, overlap_measure: str = "volume") -> torch.Tensor:
+                    contact_gap_weight: float = 0.0, overlap_measure: str = "volume",
+                    reach_weight: float = 0.0) -> torch.Tensor:
     """(B,) ``overlap_weight`` times the overlap volume (m^3; or depth, ``overlap_measure``) of every pair of ground
     objects' axis-aligned bounds plus ``out_of_bound_weight`` times the out-of-bound area (m^2, footprints shrunk by
     ``out_of_bound_shrink`` m, R_out's 0.05 m by default) of every object plus ``floor_weight`` times the ground
     objects' distances (m) from the floor, of model features ``x0`` (B, N, 8 + K) on ``floors``; differentiable in
     the geometry. ``contact``: the collision reward's option; a pair of its classes is charged only the overlap
     beyond its volume, or with ``contact_gap_weight`` > 0 that weight times the distance of their bounds' signed
-    distance from ``CONTACT_CLEARANCE`` while it is under ``CONTACT_REACH`` (module doc)."""
+    distance from ``CONTACT_CLEARANCE`` while it is under ``CONTACT_REACH`` (module doc); ``reach_weight`` times how
+    much the widest free path to each ground object is narrower than R_reach's agent (m)."""
     spec = stats.spec
     trans, half, yaws = decode_geometry(x0, stats, floor_half_extents(floors).to(x0))
     labels = x0[..., 8:].argmax(-1)
@@ -98,8 +104,12 @@ def physics_penalty(x0: torch.Tensor, stats, floors, out_of_bound_weight: float 
     charge = (charge * pairs).sum((1, 2))
     outside = geo.box_out_of_floor_area(trans, half, yaws, floors, valid, out_of_bound_shrink).sum(1)
     off_floor = geo.floor_gaps(trans, half, ground).sum(1)
-    return (overlap_weight * charge + contact_gap_weight * gaps + out_of_bound_weight * outside.to(charge)
-            + floor_weight * off_floor)
+    penalty = (overlap_weight * charge + contact_gap_weight * gaps + out_of_bound_weight * outside.to(charge)
+               + floor_weight * off_floor)
+    if reach_weight:
+        clear = reach_clearance(floors, trans, half, yaws, ground & valid, geo.AGENT_RADIUS)
+        penalty = penalty + reach_weight * (geo.AGENT_RADIUS - clear).clamp_min(0).sum(1).to(penalty)
+    return penalty
 
 
 def task_surrogate(task_reward, x0: torch.Tensor, stats, floors) -> tuple[torch.Tensor, torch.Tensor, float]:
@@ -116,8 +126,8 @@ def task_surrogate(task_reward, x0: torch.Tensor, stats, floors) -> tuple[torch.
 class PhysicsGradient(DDPO):
     """The physics gradient (module doc) with :class:`DDPO`'s surface: ``learn``, ``save``/``load``,
     callbacks. Uses ``learning_rate``, ``minibatch_size``, ``num_inner_epochs``, ``max_grad_norm``,
-    ``gradient_steps``, ``overlap_weight``, ``overlap_measure``, ``contact_gap_weight``, ``out_of_bound_weight``,
-    ``out_of_bound_shrink`` and ``kl_coef`` of :class:`~agents.ddpo.DDPOConfig`; the env's reward is logged, not
+    ``gradient_steps``, ``overlap_weight``, ``overlap_measure``, ``contact_gap_weight``, ``reach_weight``,
+    ``out_of_bound_weight``, ``out_of_bound_shrink`` and ``kl_coef`` of :class:`~agents.ddpo.DDPOConfig`; the env's reward is logged, not
     optimised, but for a stage-2 task reward, whose gradient joins (module doc)."""
 
     name = "PHYSICS-GRADIENT"
@@ -162,7 +172,7 @@ class PhysicsGradient(DDPO):
                                        floor_weight=floor_weight, overlap_weight=cfg.overlap_weight,
                                        out_of_bound_shrink=cfg.out_of_bound_shrink, contact=contact,
                                        contact_gap_weight=cfg.contact_gap_weight,
-                                       overlap_measure=cfg.overlap_measure).mean()
+                                       overlap_measure=cfg.overlap_measure, reach_weight=cfg.reach_weight).mean()
                 info = {"physics": loss.item()}
                 if task is not None:
                     surrogate, values, size = task_surrogate(task[0], x0_hat, venv.stats, floors)

@@ -367,17 +367,20 @@ def aligned_check(subj: Entity, phrase: str) -> Check:
 
 def clear_path_check(width: float, phrase: str) -> Check:
     body = """    ground = scene.objects("ground")
-    reach = scene.reachable(radius=$PATH_WIDTH / 2).float()
+    radius = $PATH_WIDTH / 2
+    # 1 for a reached object, less the narrower its path (a gradient that opens the path)
+    reach = scene.above(scene.path_clearance(radius=radius), radius, scale=$PATH_SCALE)
     # the fraction of reachable objects is the partial credit; all of them is full credit
     score = 0.5 * scene.mean_of(reach, ground) + 0.5 * scene.all_of(reach, ground)
     if PARTIAL_CREDIT:
-        narrower = scene.reachable(radius=$PATH_WIDTH / 2 * PARTIAL_SHRINK).float()
+        narrower = scene.reachable(radius=radius * PARTIAL_SHRINK).float()
         score = 0.8 * score + 0.2 * scene.mean_of(narrower, ground)
     return score
 """
     return Check("clear_paths", f"paths at least {width:g} m wide (agent radius {width / 2:g} m) reach every "
                  f"ground object", body,
-                 [Param("PATH_WIDTH", width, "m: clear width of the paths", relax=-0.15)],
+                 [Param("PATH_WIDTH", width, "m: clear width of the paths", relax=-0.15),
+                  Param("PATH_SCALE", 0.1, "m: softness", kind="scale")],
                  PRIMARY_WEIGHT, phrase, (), "clear_path", "PATH_WIDTH")
 
 
@@ -385,15 +388,18 @@ def turning_check(diameter: float, near: Entity | None, phrase: str) -> Check:
     near_arg = _objects(near) if near else "None"
     where = f"within {TURN_NEAR:g} m of a {near.label}" if near else "anywhere on the free floor"
     body = f"""    near = {near_arg}
-    full = scene.free_circle($TURN_DIAMETER / 2, near=near, within=$TURN_NEAR).float()
+    radius = $TURN_DIAMETER / 2
+    # 1 when the circle fits, less the smaller the largest free circle there (a gradient that makes room)
+    full = scene.above(scene.circle_clearance(radius, near=near, within=$TURN_NEAR), radius, scale=$TURN_SCALE)
     if not PARTIAL_CREDIT:
         return full
     # partial credit: a smaller circle at the same place, or the full circle anywhere
-    smaller = scene.free_circle($TURN_DIAMETER / 2 * PARTIAL_SHRINK, near=near, within=$TURN_NEAR).float()
-    anywhere = scene.free_circle($TURN_DIAMETER / 2).float()
+    smaller = scene.free_circle(radius * PARTIAL_SHRINK, near=near, within=$TURN_NEAR).float()
+    anywhere = scene.free_circle(radius).float()
     return 0.6 * full + 0.2 * smaller + 0.2 * anywhere
 """
     return Check("turning_circle", f"a free turning circle of {diameter:g} m diameter {where}", body,
                  [Param("TURN_DIAMETER", diameter, "m: diameter of the free circle", relax=-0.25),
-                  Param("TURN_NEAR", TURN_NEAR, "m: largest gap between the circle and the object", relax=0.5)],
+                  Param("TURN_NEAR", TURN_NEAR, "m: largest gap between the circle and the object", relax=0.5),
+                  Param("TURN_SCALE", 0.1, "m: softness", kind="scale")],
                  PRIMARY_WEIGHT, phrase, (near,) if near else (), "turning", "TURN_DIAMETER")

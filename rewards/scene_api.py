@@ -23,6 +23,7 @@ import textwrap
 
 import torch
 
+from iarcs_env import clearance
 from iarcs_env import relations as rel
 from iarcs_env.geometry import WALK_CELL, single_thread, wall_misalignment
 from iarcs_env.rooms import get_room
@@ -195,6 +196,29 @@ class Scene:
         """(B, N) bool: the ground object touches the largest free region for an agent of that radius (free
         paths 2 * radius wide reach it); False for ceiling lamps and empty slots."""
         return rel.reachable(self._space(radius), self._batch.ground_mask)
+
+    def path_clearance(self, radius: float = 0.3) -> torch.Tensor:
+        """(B, N) m: how wide the widest free path to the object is, as the clearance (distance to the nearest
+        footprint or wall) at its narrowest point, from the largest free region for an agent of that radius;
+        `reachable(radius)` is exactly `path_clearance(radius) >= radius`. Differentiable in the geometry (the
+        objects narrowing the path move apart): `scene.above(scene.path_clearance(r), r)` rewards a path opening.
+        -radius for ceiling lamps and empty slots."""
+        b = self._batch
+        return self._cached(("path_clearance", float(radius)), lambda: clearance.reach_clearance(
+            b.floors, b.translations, b.half_sizes, b.yaws, b.ground_mask, float(radius), WALK_CELL))
+
+    def circle_clearance(self, radius: float, near: torch.Tensor | None = None, within: float = 0.5,
+                         middle: float | None = None) -> torch.Tensor:
+        """(B,) m: the largest clearance (distance to the nearest ground footprint or wall) of a point where a
+        disk of this radius may stand, its edge within `within` m of an object of mask `near` (anywhere when None)
+        and, with `middle`, its centre at most `middle` m from the middle of the room; `free_circle` is exactly
+        `circle_clearance(...) >= radius`. Differentiable in the geometry; -inf where no point qualifies."""
+        b = self._batch
+        key = ("circle_clearance", float(radius), None if near is None else near.cpu().numpy().tobytes(),
+               float(within), middle)
+        return self._cached(key, lambda: clearance.disk_clearance(
+            b.floors, b.translations, b.half_sizes, b.yaws, b.ground_mask, near, float(radius) + float(within),
+            middle, WALK_CELL))
 
     def free_circle(self, radius: float, near: torch.Tensor | None = None, within: float = 0.5,
                     middle: float | None = None) -> torch.Tensor:

@@ -255,6 +255,32 @@ def test_physics_penalty_is_the_overlap_volume_plus_the_out_of_bound_area_and_de
     assert stepped.item() < penalty.item()
 
 
+def test_physics_penalty_charges_an_object_its_narrow_path_and_opens_it():
+    """``reach_weight``: the nightstand behind a cabinet, reached through a 0.51 m gap at the wall of a 3 m square
+    room, is charged the weight times R_reach's agent radius less its path clearance, and a small step down the
+    gradient widens the gap (the cabinet moves away from it) and lowers the charge; the reachable cabinet costs
+    nothing."""
+    from iarcs_env.clearance import reach_clearance
+    from iarcs_env.scene import SceneBatch
+    from scene_factory import box, make_layout
+
+    stats = default_stats("bedroom")
+    layout = make_layout([box("cabinet", 1.25, 1.2, 1.24, 0.3), box("nightstand", 0.3, 0.3, 0.25, 0.25)],
+                         floor=[(0, 0), (3, 0), (3, 3), (0, 3)])
+    batch = SceneBatch.from_layouts([layout.centred()])
+    x0 = batch.encode(stats).clone().requires_grad_(True)
+    plain = physics_penalty(x0.detach(), stats, batch.floors)
+    charged = physics_penalty(x0, stats, batch.floors, reach_weight=3.0)
+    scene = SceneBatch.decode(x0.detach(), stats, batch.floors)
+    clear = reach_clearance(scene.floors, scene.translations, scene.half_sizes, scene.yaws, scene.ground_mask, 0.3)
+    assert clear[0, 0] >= 0.3 and clear[0, 1] == pytest.approx(0.235, abs=1e-3)
+    assert (charged - plain).item() == pytest.approx(3.0 * (0.3 - 0.235), abs=3e-3)
+    charged.sum().backward()
+    assert x0.grad[0, 0, 0] > 0  # the cabinet is pushed to -x, away from the gap at the wall
+    stepped = physics_penalty(x0.detach() - 1e-2 * x0.grad, stats, batch.floors, reach_weight=3.0)
+    assert stepped.item() < charged.item()
+
+
 def test_physics_gradient_lowers_the_penalty_of_its_rollouts_and_resumes_by_name(tmp_path):
     model = make_model(PhysicsGradient, learning_rate=1e-2, gradient_steps=2)
     assert get_algorithm("physics-gradient") is PhysicsGradient

@@ -1,0 +1,187 @@
+"""Free space with a gradient: how wide the path to each object is, and how large a disk fits, as numbers (m)
+that move with the furniture.
+
+The walkable grid (:mod:`iarcs_env.walkable`) says yes or no: a cell is free for an agent of radius r when its
+centre is at least r from every ground footprint and from the walls; an object is reachable when its footprint,
+inflated by r, touches (8-neighbourhood) the largest 4-connected free region. Both are the same thresholds on one
+field, the **clearance** c(p) of a point p: its signed distance to the nearest ground footprint (negative inside
+one, by the depth) or wall (negative outside the floor). A cell is free when c >= r, so:
+
+* the **reach clearance** of an object is the largest bottleneck, min c along the path, over the 4-connected grid
+  paths from the room's largest free region to a cell next to the object's inflated footprint (the cells the
+  checker looks at): the object is reachable exactly when it is at least r (R_reach, the wheelchair's paths);
+* the **disk clearance** is the largest c over the cells where the disk may stand (near an object, near the
+  middle): the disk fits exactly when it is at least r (the wheelchair's turning circle).
+
+Each is the clearance of one cell, the path's bottleneck or the disk's centre, found on the grid without a
+gradient (the widest path by repeated max-min propagation from a cell of the largest region). Its value there is
+exact; its gradient is that of a soft minimum over every footprint and wall (temperature ``SOFT_MIN``), so the
+bottleneck pushes on every object that narrows it, not only the nearest one (which on a grid may be a wall).
+Grid cells as :func:`iarcs_env.walkable.free_space`: centres at ``corner + (index + 0.5) * cell`` of the floor's
+bounding box.
+"""
+
+from __future__ import annotations
+
+from typing import Sequence
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+from scipy import ndimage
+
+from .floorplan import FloorPlan
+from .geometry import WALK_CELL
+from .relations import _point_segment_distance, floor_edges, inside_floor
+
+SOFT_MIN = 0.05
+"""m: temperature of the soft minimum whose gradient the clearance of a cell carries."""
+
+
+def footprint_distances(points: torch.Tensor, translations, half_sizes, yaws) -> torch.Tensor:
+    """``(B, P, N)`` signed distance (m) from points ``(B, P, 2)`` (x, z) to every footprint: negative inside, by
+    the distance to its nearest edge."""
+    t, h, y = (g.to(points)[:, None] for g in (translations, half_sizes, yaws))
+    dx, dz = points[..., 0:1] - t[..., 0], points[..., 1:2] - t[..., 2]
+    cos, sin = torch.cos(y), torch.sin(y)
+    lx = (dx * cos - dz * sin).abs() - h[..., 0]  # along the object's left, (cos, -sin)
+    lz = (dx * sin + dz * cos).abs() - h[..., 2]  # along its front, (sin, cos)
+    outside = torch.sqrt(lx.clamp_min(0).square() + lz.clamp_min(0).square() + 1e-18)
+    return torch.where((lx > 0) | (lz > 0), outside, torch.maximum(lx, lz))
+
+
+def wall_distances(points: torch.Tensor, edges: torch.Tensor) -> torch.Tensor:
+    """``(B, P)`` signed distance (m) from points ``(B, P, 2)`` to their floor's boundary: negative outside."""
+    d = _point_segment_distance(points[:, :, None], edges[:, None, :, :2], edges[:, None, :, 2:]).amin(-1)
+    return torch.where(inside_floor(points, edges), d, -d)
+
+
+def point_clearance(points, edges, translations, half_sizes, yaws, obstacles, soft: bool = False) -> torch.Tensor:
+    """``(B, P)`` clearance (m) of points ``(B, P, 2)``: min of :func:`footprint_distances` over the ``obstacles``
+    ``(B, N)`` and :func:`wall_distances`. ``soft``: the exact value with the gradient of a soft minimum (module
+    doc), differentiable in the geometry."""
+    d = footprint_distances(points, translations, half_sizes, yaws).masked_fill(~obstacles[:, None], float("inf"))
+    every = torch.cat([d, wall_distances(points, edges)[..., None]], -1)
+    hard = every.amin(-1)
+    if not soft:
+        return hard
+    smooth = -SOFT_MIN * torch.logsumexp(-every / SOFT_MIN, -1)
+    return hard.detach() + smooth - smooth.detach()
+
+
+class ClearanceGrid:
+    """The clearance of every grid cell of a batch (no gradient), padded to one ``(B, H, W)`` grid: ``centres``
+    ``(B, H, W, 2)``, ``inside`` (the scene's own cells), ``value`` (-inf on padding), ``to_objects``
+    ``(B, N, H, W)`` (signed distance to each footprint), ``edges`` (:func:`floor_edges`)."""
+
+    def __init__(self, floors: Sequence[FloorPlan], translations, half_sizes, yaws, obstacles,
+                 cell: float = WALK_CELL):
+        self.cell = cell
+        self.geometry = (translations, half_sizes, yaws, obstacles)
+        bounds = torch.tensor([f.bounds for f in floors], dtype=torch.float64)
+        shapes = torch.stack([torch.ceil((bounds[:, 3] - bounds[:, 1]) / cell - 1e-9),
+                              torch.ceil((bounds[:, 2] - bounds[:, 0]) / cell - 1e-9)], 1).long().clamp_min(1)
+        B, H, W = len(floors), int(shapes[:, 0].max()), int(shapes[:, 1].max())
+        rows, cols = torch.arange(H, dtype=torch.float64), torch.arange(W, dtype=torch.float64)
+        x = bounds[:, 0, None, None] + (cols[None, None, :] + 0.5) * cell
+        z = bounds[:, 1, None, None] + (rows[None, :, None] + 0.5) * cell
+        self.centres = torch.stack(torch.broadcast_tensors(x, z), -1)  # (B, H, W, 2)
+        self.inside = ((torch.arange(H)[None, :, None] < shapes[:, 0, None, None])
+                       & (torch.arange(W)[None, None, :] < shapes[:, 1, None, None]))
+        self.edges = floor_edges(floors)
+        with torch.no_grad():
+            # float32: the grid only picks the cells; their values are computed again in the geometry's dtype
+            t, h, y = (g.detach().cpu().float() for g in (translations, half_sizes, yaws))
+            points = self.centres.reshape(B, H * W, 2).float()
+            self.to_objects = footprint_distances(points, t, h, y).permute(0, 2, 1).reshape(B, -1, H, W)
+            objects = self.to_objects.masked_fill(~obstacles.cpu()[:, :, None, None], float("inf")).amin(1)
+            walls = wall_distances(points, self.edges.float()).reshape(B, H, W)
+            self.value = torch.minimum(objects, walls).masked_fill(~self.inside, float("-inf"))
+
+    def clearance_at(self, cells: torch.Tensor) -> torch.Tensor:
+        """``(B, K)`` clearance of the cells ``(B, K)`` (flat indices), exact, with the soft minimum's gradient."""
+        points = self.centres.flatten(1, 2)[torch.arange(len(cells))[:, None], cells]
+        t, h, y, obstacles = self.geometry
+        return point_clearance(points.to(t), self.edges.to(t), t, h, y, obstacles.to(t.device), soft=True)
+
+    def widest_paths(self, radius: float) -> torch.Tensor:
+        """``(B, H, W)`` the bottleneck (m) of the widest 4-connected path to each cell from the cell of greatest
+        clearance of the scene's largest free region (cells with clearance >= ``radius``; the greatest cell of
+        the scene when none is free). Cells at ``radius`` or more form exactly that region."""
+        value = self.value
+        B, H, W = value.shape
+        source = value.flatten(1).argmax(1)
+        free = (value >= radius).numpy()
+        for b in range(B):
+            labels, count = ndimage.label(free[b])
+            if count:
+                largest = np.bincount(labels.ravel())[1:].argmax() + 1
+                source[b] = int(value[b].masked_fill(torch.as_tensor(labels != largest), float("-inf")).argmax())
+        best = torch.full((B, H + 2, W + 2), float("-inf"))  # a border of -inf around every grid
+        inner = best[:, 1:-1, 1:-1]
+        inner[torch.arange(B), source // W, source % W] = value.flatten(1)[torch.arange(B), source]
+        while True:
+            before = inner.clone()
+            for _ in range(16):
+                step = torch.maximum(torch.maximum(best[:, :-2, 1:-1], best[:, 2:, 1:-1]),
+                                     torch.maximum(best[:, 1:-1, :-2], best[:, 1:-1, 2:]))
+                torch.maximum(inner, torch.minimum(step, value), out=step)
+                inner.copy_(step)
+            if torch.equal(inner, before):
+                return inner.clone()
+
+
+def _bottleneck_cells(grid: ClearanceGrid, best: torch.Tensor, ends: torch.Tensor) -> torch.Tensor:
+    """``(B, K)`` flat index of the bottleneck cell of the widest path to each of the cells ``ends (B, K)``: of the
+    cells whose clearance and widest path both equal the end's widest path (every cell on a path that is its
+    bottleneck), the nearest to the end."""
+    B, K = ends.shape
+    flat_value, flat_best = grid.value.flatten(1), best.flatten(1)
+    centres = grid.centres.flatten(1, 2)
+    out = ends.clone()
+    for b in range(B):
+        width = flat_best[b, ends[b]]  # (K,)
+        candidates = (flat_value[b, None] == width[:, None]) & (flat_best[b, None] == width[:, None])  # (K, HW)
+        distance = torch.cdist(centres[b, ends[b]], centres[b]).masked_fill(~candidates, float("inf"))
+        found = torch.isfinite(distance).any(1)
+        out[b] = torch.where(found, distance.argmin(1), ends[b])
+    return out
+
+
+def reach_clearance(floors: Sequence[FloorPlan], translations, half_sizes, yaws, ground: torch.Tensor,
+                    radius: float, cell: float = WALK_CELL) -> torch.Tensor:
+    """``(B, N)`` reach clearance (m, module doc) of each ground object for an agent of ``radius``: the object is
+    reachable (:func:`iarcs_env.relations.reachable`) exactly when it is at least ``radius``. Differentiable in
+    the geometry; ``-radius`` (no gradient) for other slots and for objects with no grid cell beside them."""
+    grid = ClearanceGrid(floors, translations, half_sizes, yaws, ground, cell)
+    best = grid.widest_paths(radius)
+    B, N = ground.shape
+    with torch.no_grad():  # cells 8-adjacent to the footprint inflated by the radius
+        inflated = (grid.to_objects < radius).float().flatten(0, 1)[:, None]
+        beside = F.max_pool2d(inflated, 3, stride=1, padding=1).reshape(grid.to_objects.shape) > 0
+        widths = best[:, None].expand_as(beside).masked_fill(~beside, float("-inf")).flatten(2)
+        width, end = widths.max(-1)  # (B, N)
+    cells = _bottleneck_cells(grid, best, end)
+    value = grid.clearance_at(cells)
+    keep = ground.cpu() & torch.isfinite(width)
+    return torch.where(keep.to(value.device), value, torch.full_like(value, -radius))
+
+
+def disk_clearance(floors: Sequence[FloorPlan], translations, half_sizes, yaws, ground: torch.Tensor,
+                   near: torch.Tensor | None = None, reach: float = float("inf"), middle: float | None = None,
+                   cell: float = WALK_CELL) -> torch.Tensor:
+    """``(B,)`` disk clearance (m, module doc): the greatest clearance of a cell centre at most ``reach`` m from a
+    footprint of ``near (B, N)`` (anywhere when None) and, with ``middle``, at most that far from the frame's
+    origin. A disk of radius r fits there (:func:`iarcs_env.relations.free_disk` with ``within = reach - r``)
+    exactly when it is at least r. Differentiable in the geometry; -inf where no cell qualifies."""
+    grid = ClearanceGrid(floors, translations, half_sizes, yaws, ground, cell)
+    with torch.no_grad():
+        allowed = grid.inside.clone()
+        if near is not None:
+            distance = grid.to_objects.masked_fill(~near.cpu()[:, :, None, None], float("inf")).amin(1)
+            allowed &= distance <= reach + 1e-9
+        if middle is not None:
+            allowed &= torch.linalg.vector_norm(grid.centres, dim=-1) <= middle + 1e-9
+        best, cells = grid.value.masked_fill(~allowed, float("-inf")).flatten(1).max(1)
+    value = grid.clearance_at(cells[:, None])[:, 0]
+    return torch.where(torch.isfinite(best).to(value.device), value, torch.full_like(value, float("-inf")))

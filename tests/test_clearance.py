@@ -1,0 +1,65 @@
+"""Free space with a gradient (iarcs_env/clearance.py): the same answers as the walkable grid, and a gradient that
+opens a narrow walkway."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from iarcs_env import relations as rel
+from iarcs_env.clearance import disk_clearance, reach_clearance
+from iarcs_env.datasets.procedural import generate_layouts
+from iarcs_env.scene import SceneBatch
+from scene_factory import box, make_layout, random_layouts
+
+SQUARE = [(0, 0), (4, 0), (4, 4), (0, 4)]
+
+
+def test_clearances_say_what_the_walkable_grid_says():
+    """On procedural bedrooms and random rooms (rotated, L-shaped, crossing boxes): an object's path clearance is at
+    least the agent radius exactly where R_reach's grid reaches it, and the disk clearance next to a bed at least
+    the disk's radius exactly where the wheelchair checker's turning circle fits; both answers occur."""
+    layouts = [lay.centred() for lay in generate_layouts("bedroom", 24, seed=3) + random_layouts(24, seed=4)]
+    batch = SceneBatch.from_layouts(layouts)
+    t, h, y, ground = batch.translations.double(), batch.half_sizes.double(), batch.yaws.double(), batch.ground_mask
+    bed = rel.class_mask(batch.labels, rel.BEDS, batch.spec.classes) & ground
+    for radius in (0.3, 0.45):
+        grid = rel.reachable(rel.free_grid(batch.floors, t, h, y, ground, radius=radius), ground)
+        clear = reach_clearance(batch.floors, t, h, y, ground, radius)
+        assert torch.equal((clear >= radius)[ground], grid[ground])
+        assert 0 < int(grid[ground].sum()) < int(ground.sum())
+        assert (clear[~ground] == -radius).all()
+    for radius, near in ((0.75, bed), (0.75, None), (1.2, None)):
+        fits = rel.free_disk(rel.free_grid(batch.floors, t, h, y, ground, radius=radius, reach=False), t, h, y, near,
+                             0.5)
+        clear = disk_clearance(batch.floors, t, h, y, ground, near=near, reach=radius + 0.5)
+        assert torch.equal(clear >= radius, fits)
+        assert 0 < int(fits.sum()) < len(layouts)
+
+
+def test_a_narrow_walkway_has_its_clearance_and_its_gradient_widens_it():
+    """A 4 m square room split by a cabinet that leaves a 0.51 m gap at the wall: the nightstand behind it is reached
+    through the gap only, so its path clearance is that of the gap's best cell centre, it is
+    reachable by a 0.2 m agent and not by R_reach's 0.3 m one, and the gradient moves the cabinet away from the gap
+    and shortens it; the disk clearance of the empty room is the distance from the middle cell to the walls."""
+    layout = make_layout([box("cabinet", 1.75, 1.2, 1.74, 0.3),  # x 0.01..3.49: the gap is x 3.49..4 at z 0.9..1.5
+                          box("nightstand", 0.3, 0.3, 0.25, 0.25),
+                          box("wardrobe", 2.0, 3.5, 1.0, 0.3)], floor=SQUARE)
+    batch = SceneBatch.from_layouts([layout])
+    t, h, y = (batch.translations.double().requires_grad_(True), batch.half_sizes.double().requires_grad_(True),
+               batch.yaws.double())
+    ground = batch.ground_mask
+    clear = reach_clearance(batch.floors, t, h, y, ground, 0.3)
+    assert clear[0, 1].item() == pytest.approx(0.235, abs=1e-6)  # the cell centres at x 3.725 (and 3.775: 0.225)
+    assert clear[0, 0].item() >= 0.3 and clear[0, 2].item() >= 0.3  # the cabinet and wardrobe face the large side
+    for radius, reached in ((0.2, True), (0.3, False)):
+        grid = rel.reachable(rel.free_grid(batch.floors, t, h, y, ground, radius=radius), ground)
+        assert bool(grid[0, 1]) is reached
+    clear[0, 1].backward()
+    assert t.grad[0, 0, 0].item() < -0.3  # the cabinet moving away from the gap (-x) widens it
+    assert h.grad[0, 0, 0].item() < -0.3  # and so does a shorter cabinet
+    assert t.grad[0, 1].abs().max().item() < 1e-6 and t.grad[0, 2].abs().max().item() < 1e-6  # nothing else narrows it
+    empty = SceneBatch.from_layouts([make_layout([box("nightstand", 0.3, 0.3, 0.25, 0.25)], floor=SQUARE)])
+    middle = disk_clearance(empty.floors, empty.translations.double(), empty.half_sizes.double(),
+                            empty.yaws.double(), empty.ground_mask)
+    assert middle.item() == pytest.approx(1.975, abs=1e-6)  # a cell centre 0.025 m from the room's middle
