@@ -127,8 +127,8 @@ class PhysicsGradient(DDPO):
     """The physics gradient (module doc) with :class:`DDPO`'s surface: ``learn``, ``save``/``load``,
     callbacks. Uses ``learning_rate``, ``minibatch_size``, ``num_inner_epochs``, ``max_grad_norm``,
     ``gradient_steps``, ``overlap_weight``, ``overlap_measure``, ``contact_gap_weight``, ``reach_weight``,
-    ``out_of_bound_weight``, ``out_of_bound_shrink`` and ``kl_coef`` of :class:`~agents.ddpo.DDPOConfig`; the env's reward is logged, not
-    optimised, but for a stage-2 task reward, whose gradient joins (module doc)."""
+    ``out_of_bound_weight``, ``out_of_bound_shrink`` and ``kl_coef`` of :class:`~agents.ddpo.DDPOConfig`; the env's
+    reward is logged, not optimised, but for a stage-2 task reward, whose gradient joins (module doc)."""
 
     name = "PHYSICS-GRADIENT"
 
