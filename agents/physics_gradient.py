@@ -31,8 +31,9 @@ and callbacks; only the update differs.
 In stage 2 the task reward joins it: ``loss -= w_task * mean over scenes of R_task(x0_hat(x_t))``, with w_task
 the composite reward's weight of its ``task`` term. The generated program runs in its sandbox, which returns
 d R_task / d geometry (:meth:`rewards.sandbox.SandboxedReward.gradient`); the chain rule through the decoding is
-applied here, as a vector-Jacobian product. The checks of free space (walkable grids, turning circles) have no
-gradient; distances, offsets, angles and heights have.
+applied here, as a vector-Jacobian product. Distances, offsets, angles, heights and the clearances of free space
+(``scene.path_clearance``, ``scene.circle_clearance``) have a gradient; yes-or-no checks (``reachable``,
+``free_circle``, ``walkable``, counts) have none.
 """
 
 from __future__ import annotations
@@ -192,7 +193,7 @@ class PhysicsGradient(DDPO):
         if task is not None and not self.checked_task_gradient:  # once, on the first update's scenes
             self.checked_task_gradient = True
             if stats["task_gradient"] == 0:
-                print("warning: the task reward has no gradient (checks of free space, such as walkable grids and "
-                      "turning circles, are not differentiable): the physics gradient follows the physical terms "
-                      "alone; train this task with ddpo", file=sys.stderr)
+                print("warning: the task reward has no gradient (yes-or-no checks, such as counts, reachable or "
+                      "free_circle, are not differentiable): the physics gradient follows the physical terms alone; "
+                      "train this task with ddpo", file=sys.stderr)
         return {**stats, "approx_kl": 0.0, "clip_fraction": 0.0}
