@@ -148,6 +148,28 @@ def _bottleneck_cells(grid: ClearanceGrid, best: torch.Tensor, ends: torch.Tenso
     return out
 
 
+CHUNK = 32
+"""Scenes gridded at once: a grid holds (scenes, objects, cells) distances (a 6 x 6 m room: 14,400 cells)."""
+
+
+def _in_chunks(fn):
+    """``fn(floors, translations, half_sizes, yaws, ground, *masks, ...)`` run on ``CHUNK`` scenes at a time and
+    concatenated (bounded memory for a batch of any size); masks given as None stay None."""
+    def chunked(floors, translations, half_sizes, yaws, ground, *args, **kwargs):
+        if len(floors) <= CHUNK:
+            return fn(floors, translations, half_sizes, yaws, ground, *args, **kwargs)
+        parts = []
+        for s in range(0, len(floors), CHUNK):
+            part = slice(s, s + CHUNK)
+            cut = [a[part] if isinstance(a, torch.Tensor) else a for a in args]
+            kw = {k: v[part] if isinstance(v, torch.Tensor) else v for k, v in kwargs.items()}
+            parts.append(fn(floors[part], translations[part], half_sizes[part], yaws[part], ground[part], *cut, **kw))
+        return torch.cat(parts)
+    chunked.__doc__, chunked.__name__ = fn.__doc__, fn.__name__
+    return chunked
+
+
+@_in_chunks
 def reach_clearance(floors: Sequence[FloorPlan], translations, half_sizes, yaws, ground: torch.Tensor,
                     radius: float, cell: float = WALK_CELL) -> torch.Tensor:
     """``(B, N)`` reach clearance (m, module doc) of each ground object for an agent of ``radius``: the object is
@@ -167,6 +189,7 @@ def reach_clearance(floors: Sequence[FloorPlan], translations, half_sizes, yaws,
     return torch.where(keep.to(value.device), value, torch.full_like(value, -radius))
 
 
+@_in_chunks
 def disk_clearance(floors: Sequence[FloorPlan], translations, half_sizes, yaws, ground: torch.Tensor,
                    near: torch.Tensor | None = None, reach: float = float("inf"), middle: float | None = None,
                    cell: float = WALK_CELL) -> torch.Tensor:
