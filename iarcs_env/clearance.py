@@ -56,17 +56,13 @@ def wall_distances(points: torch.Tensor, edges: torch.Tensor) -> torch.Tensor:
     return torch.where(inside_floor(points, edges), d, -d)
 
 
-def point_clearance(points, edges, translations, half_sizes, yaws, obstacles, soft: bool = False) -> torch.Tensor:
+def point_clearance(points, edges, translations, half_sizes, yaws, obstacles) -> torch.Tensor:
     """``(B, P)`` clearance (m) of points ``(B, P, 2)``: min of :func:`footprint_distances` over the ``obstacles``
-    ``(B, N)`` and :func:`wall_distances`. ``soft``: the exact value with the gradient of a soft minimum (module
-    doc), differentiable in the geometry."""
+    ``(B, N)`` and :func:`wall_distances`, the exact value with the gradient of a soft minimum (module doc)."""
     d = footprint_distances(points, translations, half_sizes, yaws).masked_fill(~obstacles[:, None], float("inf"))
     every = torch.cat([d, wall_distances(points, edges)[..., None]], -1)
-    hard = every.amin(-1)
-    if not soft:
-        return hard
     smooth = -SOFT_MIN * torch.logsumexp(-every / SOFT_MIN, -1)
-    return hard.detach() + smooth - smooth.detach()
+    return every.amin(-1).detach() + smooth - smooth.detach()
 
 
 class ClearanceGrid:
@@ -76,7 +72,6 @@ class ClearanceGrid:
 
     def __init__(self, floors: Sequence[FloorPlan], translations, half_sizes, yaws, obstacles,
                  cell: float = WALK_CELL):
-        self.cell = cell
         self.geometry = (translations, half_sizes, yaws, obstacles)
         bounds = torch.tensor([f.bounds for f in floors], dtype=torch.float64)
         shapes = torch.stack([torch.ceil((bounds[:, 3] - bounds[:, 1]) / cell - 1e-9),
@@ -102,7 +97,7 @@ class ClearanceGrid:
         """``(B, K)`` clearance of the cells ``(B, K)`` (flat indices), exact, with the soft minimum's gradient."""
         points = self.centres.flatten(1, 2)[torch.arange(len(cells))[:, None], cells]
         t, h, y, obstacles = self.geometry
-        return point_clearance(points.to(t), self.edges.to(t), t, h, y, obstacles.to(t.device), soft=True)
+        return point_clearance(points.to(t), self.edges.to(t), t, h, y, obstacles.to(t.device))
 
     def widest_paths(self, radius: float) -> torch.Tensor:
         """``(B, H, W)`` the bottleneck (m) of the widest 4-connected path to each cell from the cell of greatest
@@ -177,7 +172,6 @@ def reach_clearance(floors: Sequence[FloorPlan], translations, half_sizes, yaws,
     the geometry; ``-radius`` (no gradient) for other slots and for objects with no grid cell beside them."""
     grid = ClearanceGrid(floors, translations, half_sizes, yaws, ground, cell)
     best = grid.widest_paths(radius)
-    B, N = ground.shape
     with torch.no_grad():  # cells 8-adjacent to the footprint inflated by the radius
         inflated = (grid.to_objects < radius).float().flatten(0, 1)[:, None]
         beside = F.max_pool2d(inflated, 3, stride=1, padding=1).reshape(grid.to_objects.shape) > 0
