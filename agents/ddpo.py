@@ -88,8 +88,11 @@ class DDPOConfig:
     ``contact_gap_weight``."""
     contact_gap_weight: float = 0.0
     """``physics-gradient`` only: > 0 charges a pair of the collision reward's ``contact`` classes closer than 0.6 m
-    this weight times its distance (m) from a 0.05 m gap, in place of its overlap (a seat near its table is drawn
-    to it without entering it)."""
+    this weight times its distance (m) from a ``contact_gap`` gap, in place of its overlap (a seat near its table
+    is drawn to it without entering it)."""
+    contact_gap: float = 0.05
+    """``physics-gradient`` only: the gap (m) between their bounds that ``contact_gap_weight`` draws a contact pair
+    to; wider than the sampler's last steps move an object, or the pair ends up touching (Col_obj counts it)."""
     reach_weight: float = 0.0
     """``physics-gradient`` only: > 0 charges every ground object out of R_reach's reach this weight times how much
     its widest free path is too narrow (m: the agent radius, 0.3 m, less the path's clearance at its narrowest;

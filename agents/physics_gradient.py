@@ -16,9 +16,9 @@ depth``, the penetration along the axis that separates them soonest, plus ``DEPT
 i's footprint, shrunk by ``out_of_bound_shrink`` per side (R_out's 0.05 m by default), outside the floor polygon,
 and bottom_i the height (m) of a ground object's bottom above or below the floor; for a pair that the collision
 reward's ``contact`` spares (a chair pushed under its table), V_ij less that volume, at least 0; or, with
-``contact_gap_weight`` w_gap > 0, w_gap |d_ij - CONTACT_CLEARANCE| while their bounds' signed distance d_ij (m,
-negative when they overlap) is under ``CONTACT_REACH``: a seat at its table is drawn to just short of it, not
-only kept from going under it too far. w_vol is
+``contact_gap_weight`` w_gap > 0, w_gap |d_ij - g| while their bounds' signed distance d_ij (m,
+negative when they overlap) is under ``CONTACT_REACH``, g = ``contact_gap``: a seat at its table is drawn to just
+short of it, not only kept from going under it too far. w_vol is
 ``overlap_weight`` (1 by default), w_out ``out_of_bound_weight``, w_floor the weight of the run's ``floor_contact``
 reward (0 without one: an adapter that moves objects on the floor only cannot change it), and c_i the clearance
 (m) of the widest free path to object i (:func:`iarcs_env.clearance.reach_clearance`; R_reach counts it reached
@@ -52,22 +52,20 @@ from iarcs_env.scene import SceneBatch, decode_geometry, floor_half_extents
 from rewards.universal import contact_pairs
 
 from . import distributed
-from .ddpo import DDPO
+from .ddpo import DDPO, DDPOConfig
 
 CONTACT_REACH = CHAIR_GAP
 """m: a pair of the collision reward's ``contact`` classes whose bounds are closer than this is drawn together by
 ``contact_gap_weight`` (the chairs_at_dining_table relation's reach)."""
 DEPTH_MARGIN = 0.02
 """m: with ``overlap_measure: depth``, pairs closer than this count as overlapping (pushed apart to it)."""
-CONTACT_CLEARANCE = 0.05
-"""m: the gap ``contact_gap_weight`` draws such a pair to: short of touching, so that the sampler's last steps
-do not push one into the other (Col_obj counts any overlap)."""
 
 
 def physics_penalty(x0: torch.Tensor, stats, floors, out_of_bound_weight: float = 1.0,
                     floor_weight: float = 0.0, overlap_weight: float = 1.0,
                     out_of_bound_shrink: float = geo.OUT_OF_BOUND_SHRINK, contact: dict | None = None,
-                    contact_gap_weight: float = 0.0, overlap_measure: str = "volume",
+                    contact_gap_weight: float = 0.0, contact_gap: float = DDPOConfig.contact_gap,
+                    overlap_measure: str = "volume",
                     reach_weight: float = 0.0) -> torch.Tensor:
     """(B,) ``overlap_weight`` times the overlap volume (m^3; or depth, ``overlap_measure``) of every pair of ground
     objects' axis-aligned bounds plus ``out_of_bound_weight`` times the out-of-bound area (m^2, footprints shrunk by
@@ -75,7 +73,7 @@ def physics_penalty(x0: torch.Tensor, stats, floors, out_of_bound_weight: float 
     objects' distances (m) from the floor, of model features ``x0`` (B, N, 8 + K) on ``floors``; differentiable in
     the geometry. ``contact``: the collision reward's option; a pair of its classes is charged only the overlap
     beyond its volume, or with ``contact_gap_weight`` > 0 that weight times the distance of their bounds' signed
-    distance from ``CONTACT_CLEARANCE`` while it is under ``CONTACT_REACH`` (module doc); ``reach_weight`` times how
+    distance from ``contact_gap`` while it is under ``CONTACT_REACH`` (module doc); ``reach_weight`` times how
     much the widest free path to each ground object is narrower than R_reach's agent (m)."""
     spec = stats.spec
     trans, half, yaws = decode_geometry(x0, stats, floor_half_extents(floors).to(x0))
@@ -97,7 +95,7 @@ def physics_penalty(x0: torch.Tensor, stats, floors, out_of_bound_weight: float 
         spared = contact_pairs(labels, valid, spec, contact)
         if contact_gap_weight:
             drawn = spared & (-sooner < CONTACT_REACH) & pairs
-            gaps = ((-sooner - CONTACT_CLEARANCE).abs() * drawn).sum((1, 2))
+            gaps = ((-sooner - contact_gap).abs() * drawn).sum((1, 2))
         if overlap_measure == "volume" and not contact_gap_weight:
             charge = torch.where(spared, (charge - contact["volume"]).clamp_min(0.0), charge)
         else:  # the pair is charged through contact_gap_weight only
@@ -127,9 +125,10 @@ def task_surrogate(task_reward, x0: torch.Tensor, stats, floors) -> tuple[torch.
 class PhysicsGradient(DDPO):
     """The physics gradient (module doc) with :class:`DDPO`'s surface: ``learn``, ``save``/``load``,
     callbacks. Uses ``learning_rate``, ``minibatch_size``, ``num_inner_epochs``, ``max_grad_norm``,
-    ``gradient_steps``, ``overlap_weight``, ``overlap_measure``, ``contact_gap_weight``, ``reach_weight``,
-    ``out_of_bound_weight``, ``out_of_bound_shrink`` and ``kl_coef`` of :class:`~agents.ddpo.DDPOConfig`; the env's
-    reward is logged, not optimised, but for a stage-2 task reward, whose gradient joins (module doc)."""
+    ``gradient_steps``, ``overlap_weight``, ``overlap_measure``, ``contact_gap_weight``, ``contact_gap``,
+    ``reach_weight``, ``out_of_bound_weight``, ``out_of_bound_shrink`` and ``kl_coef`` of
+    :class:`~agents.ddpo.DDPOConfig`; the env's reward is logged, not optimised, but for a stage-2 task reward, whose
+    gradient joins (module doc)."""
 
     name = "PHYSICS-GRADIENT"
 
@@ -172,7 +171,7 @@ class PhysicsGradient(DDPO):
                 loss = physics_penalty(x0_hat, venv.stats, floors, out_of_bound_weight=cfg.out_of_bound_weight,
                                        floor_weight=floor_weight, overlap_weight=cfg.overlap_weight,
                                        out_of_bound_shrink=cfg.out_of_bound_shrink, contact=contact,
-                                       contact_gap_weight=cfg.contact_gap_weight,
+                                       contact_gap_weight=cfg.contact_gap_weight, contact_gap=cfg.contact_gap,
                                        overlap_measure=cfg.overlap_measure, reach_weight=cfg.reach_weight).mean()
                 info = {"physics": loss.item()}
                 if task is not None:

@@ -17,6 +17,7 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from agents.ddpo import DDPOConfig  # noqa: E402
 from agents.denoiser import centre_floor  # noqa: E402
 from agents.physics_gradient import physics_penalty  # noqa: E402
 from agents.train import load_trained_policy  # noqa: E402
@@ -35,6 +36,7 @@ def compare(run: str, num_floors: int, seed: int = 4242) -> list[dict]:
     def penalty(x):
         return float(physics_penalty(x, prior.stats, floors, out_of_bound_weight=ddpo.get("out_of_bound_weight", 1.0),
                                      contact=contact, contact_gap_weight=ddpo.get("contact_gap_weight", 0.0),
+                                     contact_gap=ddpo.get("contact_gap", DDPOConfig.contact_gap),
                                      overlap_measure=ddpo.get("overlap_measure", "volume")).mean())
 
     rows = []

@@ -229,6 +229,9 @@ def test_physics_penalty_is_the_overlap_volume_plus_the_out_of_bound_area_and_de
     drawn.sum().backward()
     chair_x, table_x = (x_apart.grad[0, i, 0] for i in (0, 1))
     assert chair_x < 0 < table_x and x_apart.grad[0, 2, :3].abs().sum() == 0  # drawn together; the far one left
+    settled = physics_penalty(x_apart.detach(), dining, apart.floors, contact=at_table, contact_gap_weight=2.0,
+                              contact_gap=0.2)
+    assert settled.item() == pytest.approx(0.0, abs=1e-3)  # already at the gap it is drawn to
     under = SceneBatch.from_layouts([make_layout([box("dining_chair", 1.6, 1.0, 0.25, 0.25),  # 0.4 m into the table
                                                   box("dining_table", 1.75, 1.0, 0.3, 0.4)], room="diningroom")])
     x_under = under.encode(dining).clone().requires_grad_(True)
