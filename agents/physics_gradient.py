@@ -111,6 +111,16 @@ def physics_penalty(x0: torch.Tensor, stats, floors, out_of_bound_weight: float 
     return penalty
 
 
+def config_penalty(x0: torch.Tensor, stats, floors, cfg: DDPOConfig, contact: dict | None = None,
+                   floor_weight: float = 0.0) -> torch.Tensor:
+    """:func:`physics_penalty` with the weights and measures of a run's DDPO config ``cfg``; ``contact`` and
+    ``floor_weight`` come from its reward (:meth:`PhysicsGradient.contact`, :meth:`PhysicsGradient.floor_weight`)."""
+    return physics_penalty(x0, stats, floors, out_of_bound_weight=cfg.out_of_bound_weight, floor_weight=floor_weight,
+                           overlap_weight=cfg.overlap_weight, out_of_bound_shrink=cfg.out_of_bound_shrink,
+                           contact=contact, contact_gap_weight=cfg.contact_gap_weight, contact_gap=cfg.contact_gap,
+                           overlap_measure=cfg.overlap_measure, reach_weight=cfg.reach_weight)
+
+
 def task_surrogate(task_reward, x0: torch.Tensor, stats, floors) -> tuple[torch.Tensor, torch.Tensor, float]:
     """(surrogate (scalar), values (B,), the gradient's L1 norm): the task reward of the scenes that model
     features ``x0`` describe, decoded as the environment decodes them (:meth:`SceneBatch.decode`), and a surrogate
@@ -168,11 +178,7 @@ class PhysicsGradient(DDPO):
                 floors = [venv.floors[int(i)] for i in mb["floor_index"]]
                 x0_hat = self.policy.predict_x0(mb["x_t"], mb["t"], mb["floor"], mb.get("classes", None))
                 x0_hat = x0_hat.cpu()
-                loss = physics_penalty(x0_hat, venv.stats, floors, out_of_bound_weight=cfg.out_of_bound_weight,
-                                       floor_weight=floor_weight, overlap_weight=cfg.overlap_weight,
-                                       out_of_bound_shrink=cfg.out_of_bound_shrink, contact=contact,
-                                       contact_gap_weight=cfg.contact_gap_weight, contact_gap=cfg.contact_gap,
-                                       overlap_measure=cfg.overlap_measure, reach_weight=cfg.reach_weight).mean()
+                loss = config_penalty(x0_hat, venv.stats, floors, cfg, contact, floor_weight).mean()
                 info = {"physics": loss.item()}
                 if task is not None:
                     surrogate, values, size = task_surrogate(task[0], x0_hat, venv.stats, floors)

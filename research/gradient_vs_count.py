@@ -19,7 +19,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from agents.ddpo import DDPOConfig  # noqa: E402
 from agents.denoiser import centre_floor  # noqa: E402
-from agents.physics_gradient import physics_penalty  # noqa: E402
+from agents.physics_gradient import config_penalty  # noqa: E402
 from agents.train import load_trained_policy  # noqa: E402
 from iarcs_env.env import default_floors  # noqa: E402
 from iarcs_env.metrics import evaluate_layouts  # noqa: E402
@@ -28,16 +28,13 @@ from iarcs_env.scene import SceneBatch  # noqa: E402
 
 def compare(run: str, num_floors: int, seed: int = 4242) -> list[dict]:
     policy, cfg = load_trained_policy(run)
-    prior, ddpo = policy.prior, cfg.ddpo
+    prior, ddpo = policy.prior, DDPOConfig.from_dict(cfg.ddpo)
     collision = cfg.reward.get("collision")
     contact = collision.get("contact") if isinstance(collision, dict) else None
     floors = [centre_floor(f) for f in default_floors(cfg.room, count=num_floors, seed=seed)]
 
-    def penalty(x):
-        return float(physics_penalty(x, prior.stats, floors, out_of_bound_weight=ddpo.get("out_of_bound_weight", 1.0),
-                                     contact=contact, contact_gap_weight=ddpo.get("contact_gap_weight", 0.0),
-                                     contact_gap=ddpo.get("contact_gap", DDPOConfig.contact_gap),
-                                     overlap_measure=ddpo.get("overlap_measure", "volume")).mean())
+    def penalty(x):  # the run's penalty as its training charged it (its floor_contact weight left out)
+        return float(config_penalty(x, prior.stats, floors, ddpo, contact).mean())
 
     rows = []
     for name in ("prior", "adapter"):
