@@ -93,6 +93,9 @@ class DDPOConfig:
     contact_gap: float = 0.05
     """``physics-gradient`` only: the gap (m) between their bounds that ``contact_gap_weight`` draws a contact pair
     to; wider than the sampler's last steps move an object, or the pair ends up touching (Col_obj counts it)."""
+    uncharged_pairs: list | None = None
+    """``physics-gradient`` only: class pairs (names or groups, e.g. ``[[seat, desk]]``) whose overlap is not
+    charged: a chair under its desk, which the penetration gradient pushes out sideways or behind the desk."""
     reach_weight: float = 0.0
     """``physics-gradient`` only: > 0 charges every ground object out of R_reach's reach this weight times how much
     its widest free path is too narrow (m: the agent radius, 0.3 m, less the path's clearance at its narrowest;

@@ -18,7 +18,8 @@ and bottom_i the height (m) of a ground object's bottom above or below the floor
 reward's ``contact`` spares (a chair pushed under its table), V_ij less that volume, at least 0; or, with
 ``contact_gap_weight`` w_gap > 0, w_gap |d_ij - g| while their bounds' signed distance d_ij (m,
 negative when they overlap) is under ``CONTACT_REACH``, g = ``contact_gap``: a seat at its table is drawn to just
-short of it, not only kept from going under it too far. w_vol is
+short of it, not only kept from going under it too far; for a pair of ``uncharged_pairs`` classes (a chair
+under its desk), nothing. w_vol is
 ``overlap_weight`` (1 by default), w_out ``out_of_bound_weight``, w_floor the weight of the run's ``floor_contact``
 reward (0 without one: an adapter that moves objects on the floor only cannot change it), and c_i the clearance
 (m) of the widest free path to object i (:func:`iarcs_env.clearance.reach_clearance`; R_reach counts it reached
@@ -49,7 +50,7 @@ from iarcs_env.clearance import reach_clearance
 from iarcs_env.relation_fidelity import CHAIR_GAP
 from iarcs_env.scene import SceneBatch, decode_geometry, floor_half_extents
 
-from rewards.universal import contact_pairs
+from rewards.universal import class_pairs, contact_pairs
 
 from . import distributed
 from .ddpo import DDPO, DDPOConfig
@@ -65,7 +66,7 @@ def physics_penalty(x0: torch.Tensor, stats, floors, out_of_bound_weight: float 
                     floor_weight: float = 0.0, overlap_weight: float = 1.0,
                     out_of_bound_shrink: float = geo.OUT_OF_BOUND_SHRINK, contact: dict | None = None,
                     contact_gap_weight: float = 0.0, contact_gap: float = DDPOConfig.contact_gap,
-                    overlap_measure: str = "volume",
+                    overlap_measure: str = "volume", uncharged_pairs: list | None = None,
                     reach_weight: float = 0.0) -> torch.Tensor:
     """(B,) ``overlap_weight`` times the overlap volume (m^3; or depth, ``overlap_measure``) of every pair of ground
     objects' axis-aligned bounds plus ``out_of_bound_weight`` times the out-of-bound area (m^2, footprints shrunk by
@@ -73,7 +74,8 @@ def physics_penalty(x0: torch.Tensor, stats, floors, out_of_bound_weight: float 
     objects' distances (m) from the floor, of model features ``x0`` (B, N, 8 + K) on ``floors``; differentiable in
     the geometry. ``contact``: the collision reward's option; a pair of its classes is charged only the overlap
     beyond its volume, or with ``contact_gap_weight`` > 0 that weight times the distance of their bounds' signed
-    distance from ``contact_gap`` while it is under ``CONTACT_REACH`` (module doc); ``reach_weight`` times how
+    distance from ``contact_gap`` while it is under ``CONTACT_REACH`` (module doc); a pair of
+    ``uncharged_pairs`` classes is not charged its overlap; ``reach_weight`` times how
     much the widest free path to each ground object is narrower than R_reach's agent (m)."""
     spec = stats.spec
     trans, half, yaws = decode_geometry(x0, stats, floor_half_extents(floors).to(x0))
@@ -100,6 +102,8 @@ def physics_penalty(x0: torch.Tensor, stats, floors, out_of_bound_weight: float 
             charge = torch.where(spared, (charge - contact["volume"]).clamp_min(0.0), charge)
         else:  # the pair is charged through contact_gap_weight only
             charge = charge.masked_fill(spared, 0.0)
+    if uncharged_pairs:
+        charge = charge.masked_fill(class_pairs(labels, valid, spec, uncharged_pairs, "ddpo.uncharged_pairs"), 0.0)
     charge = (charge * pairs).sum((1, 2))
     outside = geo.box_out_of_floor_area(trans, half, yaws, floors, valid, out_of_bound_shrink).sum(1)
     off_floor = geo.floor_gaps(trans, half, ground).sum(1)
@@ -118,7 +122,8 @@ def config_penalty(x0: torch.Tensor, stats, floors, cfg: DDPOConfig, contact: di
     return physics_penalty(x0, stats, floors, out_of_bound_weight=cfg.out_of_bound_weight, floor_weight=floor_weight,
                            overlap_weight=cfg.overlap_weight, out_of_bound_shrink=cfg.out_of_bound_shrink,
                            contact=contact, contact_gap_weight=cfg.contact_gap_weight, contact_gap=cfg.contact_gap,
-                           overlap_measure=cfg.overlap_measure, reach_weight=cfg.reach_weight)
+                           overlap_measure=cfg.overlap_measure, uncharged_pairs=cfg.uncharged_pairs,
+                           reach_weight=cfg.reach_weight)
 
 
 def task_surrogate(task_reward, x0: torch.Tensor, stats, floors) -> tuple[torch.Tensor, torch.Tensor, float]:
@@ -136,7 +141,7 @@ class PhysicsGradient(DDPO):
     """The physics gradient (module doc) with :class:`DDPO`'s surface: ``learn``, ``save``/``load``,
     callbacks. Uses ``learning_rate``, ``minibatch_size``, ``num_inner_epochs``, ``max_grad_norm``,
     ``gradient_steps``, ``overlap_weight``, ``overlap_measure``, ``contact_gap_weight``, ``contact_gap``,
-    ``reach_weight``, ``out_of_bound_weight``, ``out_of_bound_shrink`` and ``kl_coef`` of
+    ``uncharged_pairs``, ``reach_weight``, ``out_of_bound_weight``, ``out_of_bound_shrink`` and ``kl_coef`` of
     :class:`~agents.ddpo.DDPOConfig`; the env's reward is logged, not optimised, but for a stage-2 task reward, whose
     gradient joins (module doc)."""
 

@@ -350,3 +350,15 @@ def test_metric_trade_reads_reports_in_percent_and_draws_them(tmp_path):
     assert pixels.size == (720, 440) and pixels.getextrema() == (0, 255)  # something drawn on white
     with pytest.raises(SystemExit, match="no R_walkable"):
         mt.points([f"a={tmp_path / 'a.json'}"], "Col_obj", "R_walkable")
+
+
+def test_seat_desk_pulls_push_a_chair_out_of_its_desk_forward_unless_the_pair_is_uncharged():
+    from iarcs_env.env import default_stats
+
+    room = make_layout([box("desk", 2.0, 0.35, 0.6, 0.3), box("chair", 2.0, 0.75, 0.25, 0.25),  # 0.15 m into it
+                        box("double_bed", 1.0, 2.0, 0.9, 0.9)]).centred()
+    pulls = load("seat_desk_pulls").seat_pulls(room, default_stats("bedroom"))
+    lateral, forward = pulls["overlap depth"]
+    assert forward > 0 and abs(lateral) < 1e-6 * forward  # out of the desk's front, where study_zone wants it
+    assert pulls["overlap depth, seat-desk uncharged"] == (0.0, 0.0)
+    assert pulls["out of bound x5"] == (0.0, 0.0)  # everything inside the walls

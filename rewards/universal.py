@@ -143,14 +143,20 @@ def contact_pairs(labels: torch.Tensor, valid: torch.Tensor, spec, contact: dict
     ``contact["pairs"]`` (either order); ``contact`` is the collision reward's option (module doc)."""
     if set(contact) != {"pairs", "volume"}:
         raise ValueError(f"collision contact: expected {{pairs: [[a, b], ...], volume: m^3}}, got {contact!r}")
+    return class_pairs(labels, valid, spec, contact["pairs"], "collision contact")
+
+
+def class_pairs(labels: torch.Tensor, valid: torch.Tensor, spec, pairs, option: str) -> torch.Tensor:
+    """(B, N, N) bool: the valid slots i, j whose classes form one of ``pairs`` (class names or groups, either
+    order); ``option`` names the setting that lists them in the errors."""
     out = torch.zeros(labels.shape + labels.shape[-1:], dtype=torch.bool, device=labels.device)
-    for pair in contact["pairs"]:
+    for pair in pairs:
         if len(pair) != 2:
-            raise ValueError(f"collision contact: each pair names two classes or class groups, got {pair!r}")
+            raise ValueError(f"{option}: each pair names two classes or class groups, got {pair!r}")
         a, b = (class_mask(labels, spec.classes, [name]) & valid for name in pair)  # unknown: raises
         for name in pair:
             if not set(CLASS_GROUPS.get(name, (name,))) & set(spec.classes):
-                raise ValueError(f"collision contact: {spec.name} rooms have no {name!r}; name classes or "
+                raise ValueError(f"{option}: {spec.name} rooms have no {name!r}; name classes or "
                                  f"groups of this room type ({', '.join(spec.classes)})")
         out |= (a[:, :, None] & b[:, None, :]) | (b[:, :, None] & a[:, None, :])
     return out

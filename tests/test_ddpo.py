@@ -245,6 +245,14 @@ def test_physics_penalty_is_the_overlap_volume_plus_the_out_of_bound_area_and_de
     assert depth.item() == pytest.approx(0.4 + 0.02, abs=1e-3)  # out along x, the shorter way, to a 0.02 m gap
     spared_depth = physics_penalty(x_under.detach(), dining, under.floors, overlap_measure="depth", contact=at_table)
     assert spared_depth.item() == 0  # a contact pair is charged only through contact_gap_weight
+    uncharged = physics_penalty(x_under.detach(), dining, under.floors, overlap_measure="depth",
+                                uncharged_pairs=[["seat", "table"]])
+    assert uncharged.item() == 0  # the chair may stay under its table
+    other_pair = physics_penalty(x_under.detach(), dining, under.floors, overlap_measure="depth",
+                                 uncharged_pairs=[["seat", "seat"]])
+    assert other_pair.item() == pytest.approx(depth.item(), rel=1e-6)
+    with pytest.raises(ValueError, match="ddpo.uncharged_pairs: diningroom rooms have no .nightstand."):
+        physics_penalty(x_under.detach(), dining, under.floors, uncharged_pairs=[["seat", "nightstand"]])
     with pytest.raises(ValueError, match="overlap_measure"):
         physics_penalty(x_under.detach(), dining, under.floors, overlap_measure="area")
     gap = float(geo.floor_gaps(scene.translations, scene.half_sizes, scene.ground_mask).sum())
