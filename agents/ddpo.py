@@ -95,8 +95,8 @@ class DDPOConfig:
     to; wider than the sampler's last steps move an object, or the pair ends up touching (Col_obj counts it)."""
     uncharged_pairs: list | None = None
     """``physics-gradient`` only: class pairs (names or groups, e.g. ``[[seat, desk]]``) whose overlap is not
-    charged: a chair half under its desk, the data's own contact, which a push out of the desk's box helped move
-    out of the study zone (``research/seat_desk_pulls.py``)."""
+    charged: a chair half under its desk, the data's own contact (charged, chairs left their desks more often:
+    ``research/seat_desk_pulls.py``)."""
     reach_weight: float = 0.0
     """``physics-gradient`` only: > 0 charges every ground object out of R_reach's reach this weight times how much
     its widest free path is too narrow (m: the agent radius, 0.3 m, less the path's clearance at its narrowest;

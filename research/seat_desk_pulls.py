@@ -1,6 +1,7 @@
 """What the physics gradient's terms do to a seat at its desk: why the bedroom stage-1 adapter loses study_zone.
 
     .venv/bin/python research/seat_desk_pulls.py PRIOR_SAMPLES.json [MORE.json ...]
+    .venv/bin/python research/seat_desk_pulls.py --lost PRIOR_S0.json RUN_S0.json [PRIOR_S1.json RUN_S1.json ...]
 
 For every room where study_zone holds (a seat in front of a desk, ``iarcs_env.tasks.check_study_zone``), the room's
 first desk and first seat are taken and each term of :func:`agents.physics_gradient.physics_penalty` (at the shipped
@@ -9,6 +10,11 @@ direction of the seat relative to its desk is read in the desk's frame: lateral 
 (positive: away from the desk's front, where study_zone wants the seat). The walkway term is split into the seat's
 own shortfall (its path too narrow) and the other objects' (the seat standing in their path). Printed per term: the
 rooms where it moves the seat, how many of them backward (towards or behind the desk's centre) or mostly sideways.
+
+``--lost`` compares files sampled on the same floors with the same seed, in pairs (the prior's, then a run's): the
+rooms where study_zone holds in the first and not in the second (and the other way round), and where the second
+put the seat nearest to a desk: behind the desk's centre, sideways (beyond its width + 0.1 m), more than 0.9 m out
+in front, or no desk or no seat left in the room.
 """
 
 from __future__ import annotations
@@ -72,10 +78,55 @@ def seat_pulls(layout, stats) -> dict[str, tuple[float, float]]:
     return pulls
 
 
+def where_the_seat_went(layout) -> str:
+    """Why study_zone fails in ``layout``: the nearest seat to a desk, read in that desk's frame."""
+    import numpy as np
+
+    labels = list(layout.labels)
+    desks = [i for i, label in enumerate(labels) if label == "desk"]
+    seats = [i for i, label in enumerate(labels) if label in SEATS]
+    if not desks or not seats:
+        return "no desk or no seat"
+    t, h, yaws = np.asarray(layout.translations), np.asarray(layout.half_sizes), np.ravel(layout.yaws)
+    distance, desk, seat = min((float(np.hypot(*(t[c, 0:3:2] - t[d, 0:3:2]))), d, c) for d in desks for c in seats)
+    dx, dz = t[seat, 0:3:2] - t[desk, 0:3:2]
+    lateral = np.cos(yaws[desk]) * dx - np.sin(yaws[desk]) * dz
+    forward = np.sin(yaws[desk]) * dx + np.cos(yaws[desk]) * dz
+    return ("behind the desk's centre" if forward <= 0 else "sideways" if abs(lateral) > h[desk, 0] + 0.1
+            else "too far in front")
+
+
+def lost_rooms(pairs: list[tuple[str, str]]) -> dict[str, int]:
+    """Over (before, after) file pairs: rooms that lost and gained study_zone, and where the lost ones' seat went."""
+    from collections import Counter
+
+    import numpy as np
+
+    from iarcs_env.datasets import load_layouts
+    from iarcs_env.scene import SceneBatch
+    from iarcs_env.tasks import check_study_zone
+
+    counts = Counter()
+    for before, after in pairs:
+        a, b = load_layouts(before, "bedroom"), load_layouts(after, "bedroom")
+        held, holds = (check_study_zone(SceneBatch.from_layouts(x)) for x in (a, b))
+        counts["lost"] += int((held & ~holds).sum())
+        counts["gained"] += int((~held & holds).sum())
+        for i in np.nonzero(held & ~holds)[0]:
+            counts[where_the_seat_went(b[i])] += 1
+    return dict(counts)
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("files", nargs="+", help="neutral-JSON bedroom scene files (e.g. the prior's samples)")
+    parser.add_argument("--lost", action="store_true", help="the files are (prior, run) pairs: where the seats went")
     args = parser.parse_args()
+    if args.lost:
+        if len(args.files) % 2:
+            parser.error("--lost takes files in pairs: the prior's samples, then the run's, on the same floors")
+        print(lost_rooms(list(zip(args.files[::2], args.files[1::2]))))
+        return
     import numpy as np
 
     from iarcs_env.datasets import load_layouts

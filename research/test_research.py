@@ -362,3 +362,12 @@ def test_seat_desk_pulls_push_a_chair_out_of_its_desk_forward_unless_the_pair_is
     assert forward > 0 and abs(lateral) < 1e-6 * forward  # out of the desk's front, where study_zone wants it
     assert pulls["overlap depth, seat-desk uncharged"] == (0.0, 0.0)
     assert pulls["out of bound x5"] == (0.0, 0.0)  # everything inside the walls
+
+
+def test_seat_desk_pulls_says_where_a_seat_left_its_desk():
+    went = load("seat_desk_pulls").where_the_seat_went
+    desk = box("desk", 2.0, 0.35, 0.6, 0.3)  # facing +z, 1.2 m wide
+    assert went(make_layout([desk, box("chair", 2.0, 0.2, 0.25, 0.25)])) == "behind the desk's centre"
+    assert went(make_layout([desk, box("chair", 2.8, 0.8, 0.25, 0.25)])) == "sideways"  # 0.8 m > 0.6 + 0.1
+    assert went(make_layout([desk, box("chair", 2.0, 2.0, 0.25, 0.25)])) == "too far in front"
+    assert went(make_layout([desk, box("double_bed", 1.0, 2.0, 0.9, 0.9)])) == "no desk or no seat"
