@@ -175,14 +175,54 @@ class Attention(nn.Module):
         self.out_proj = nn.Linear(dim, dim)
 
     def forward(self, x: torch.Tensor, context: torch.Tensor | None = None) -> torch.Tensor:
+        """Attention of ``x`` (B, N, dim) to itself, or to ``context`` (B, M, context_dim): cross-attention to
+        the many floor tokens (M > N) without projecting them (:meth:`forward_context_absorbed`) where the key and
+        value projections are plain layers, not LoRA-wrapped."""
+        if (context is not None and context.shape[1] > x.shape[1]
+                and type(self.k_proj) is nn.Linear and type(self.v_proj) is nn.Linear):
+            return self.forward_context_absorbed(x, context)
+        return self.forward_reference(x, context)
+
+    def forward_reference(self, x: torch.Tensor, context: torch.Tensor | None = None) -> torch.Tensor:
+        """softmax(q k^T / sqrt(d_head)) v per head, with k and v the projections of every context token."""
         ctx = x if context is None else context
         b, n, d = x.shape
         m = ctx.shape[1]
         q = self.q_proj(x).view(b, n, self.num_heads, self.head_dim).transpose(1, 2)
         k = self.k_proj(ctx).view(b, m, self.num_heads, self.head_dim).transpose(1, 2)
         v = self.v_proj(ctx).view(b, m, self.num_heads, self.head_dim).transpose(1, 2)
-        o = F.scaled_dot_product_attention(q, k, v, dropout_p=self.dropout if self.training else 0.0)
+        o = _attend(q, k, v, self.dropout if self.training else 0.0)
         return self.out_proj(o.transpose(1, 2).reshape(b, n, d))
+
+    def forward_context_absorbed(self, x: torch.Tensor, context: torch.Tensor) -> torch.Tensor:
+        """The same attention with the key and value projections moved onto the N queries: per head h,
+        q_h (c W_k,h + b_k,h)^T = (q_h W_k,h) c^T + a constant per query, which the softmax drops, and
+        softmax(.) (c W_v,h + b_v,h) = (softmax(.) c) W_v,h^T + b_v,h. All heads then attend to the raw context c
+        as one head over N x heads queries; the (B, M, dim) keys and values are never formed. Equal to
+        :meth:`forward_reference` up to float rounding; cheaper when M >> N (68 floor tokens, 12 slots)."""
+        b, n, d = x.shape
+        h, hd = self.num_heads, self.head_dim
+        q = self.q_proj(x).view(b * n, h, hd).transpose(0, 1)  # (h, B N, hd)
+        q = torch.bmm(q, self.k_proj.weight.view(h, hd, -1).to(q.dtype))  # (h, B N, context_dim)
+        q = q.view(h, b, n, -1).transpose(0, 1).reshape(b, h * n, -1)
+        context = context.to(q.dtype)
+        scores = torch.bmm(q, context.transpose(1, 2)) * hd ** -0.5  # (B, h N, M)
+        weights = torch.softmax(scores, -1, dtype=torch.promote_types(scores.dtype, torch.float32))
+        weights = F.dropout(weights, self.dropout, self.training).to(q.dtype)
+        mixed = torch.bmm(weights, context)  # (B, h N, context_dim)
+        mixed = mixed.view(b, h, n, -1).transpose(0, 1).reshape(h, b * n, -1)
+        o = torch.bmm(mixed, self.v_proj.weight.view(h, hd, -1).transpose(1, 2).to(mixed.dtype))  # (h, B N, hd)
+        o = (o + self.v_proj.bias.view(h, 1, hd)).transpose(0, 1).reshape(b, n, d)
+        return self.out_proj(o)
+
+
+def _attend(q: torch.Tensor, k: torch.Tensor, v: torch.Tensor, dropout: float):
+    """``F.scaled_dot_product_attention``; in float32 on the CPU, where its bfloat16 backward is 8 times slower
+    than the float32 one (docs/results/benchmarks.md, "Pretraining")."""
+    if q.device.type != "cpu" or torch.bfloat16 not in (q.dtype, k.dtype, v.dtype):
+        return F.scaled_dot_product_attention(q, k, v, dropout_p=dropout)
+    with torch.autocast("cpu", enabled=False):
+        return F.scaled_dot_product_attention(q.float(), k.float(), v.float(), dropout_p=dropout).to(q.dtype)
 
 
 def modulate(x: torch.Tensor, shift: torch.Tensor, scale: torch.Tensor) -> torch.Tensor:

@@ -32,7 +32,7 @@ class PointMaxPool(torch.autograd.Function):
             # point: added after the max.
             z = torch.matmul(w, h[i:i + rows].transpose(1, 2))
             torch.max(z, dim=2, out=(pooled[i:i + rows], arg[i:i + rows]))
-            sub[i:i + rows] = torch.index_select(z, 2, subset).transpose(1, 2)
+        torch.matmul(h[:, subset], w.t(), out=sub)
         c = bias.to(h.dtype)
         pooled.add_(c).relu_()
         sub.add_(c).relu_()
@@ -47,7 +47,7 @@ class PointMaxPool(torch.autograd.Function):
         # through the relu (its own backward kernel: one pass) to the arg-max points (B, F) and the subset (B, K, F)
         g_pooled = torch.ops.aten.threshold_backward(g_pooled, pooled, 0).to(h.dtype)
         g_sub = torch.ops.aten.threshold_backward(g_sub, sub, 0).to(h.dtype)
-        g_weight = torch.einsum("bsf,bsc->fc", g_sub, h[:, subset])
+        g_weight = g_sub.reshape(-1, g_sub.shape[-1]).t() @ h[:, subset].reshape(-1, k)
         g_h = torch.zeros_like(h)
         rows = PointMaxPool.rows_per_chunk(h, weight)
         for i in range(0, b, rows):  # each feature's gradient goes to its arg-max point

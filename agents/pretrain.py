@@ -157,7 +157,8 @@ class PretrainConfig:
     randomness does not depend on the device."""
     precision: str = "fp32"
     """``fp32``, or ``bf16``: the denoiser's forward pass under ``torch.autocast`` in bfloat16 (weights, optimiser,
-    EMA and the loss stay float32). Faster on recent GPUs (the ``paper`` preset); no faster on a CPU."""
+    EMA and the loss stay float32; attention runs in float32 on a CPU). Faster on recent GPUs, and 1.4x faster on
+    a CPU with AMX tiles, with the same validation loss (docs/results/benchmarks.md, "Pretraining")."""
     compile: bool = False
     """``torch.compile`` the denoiser (fewer, fused GPU kernels; it compiles for a minute or two first). When
     compiling fails the run goes on without it, with the reason logged."""

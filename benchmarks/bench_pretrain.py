@@ -1,10 +1,13 @@
 """Pretraining throughput: rooms per second of the full training step (batch drawn and augmented on the
 device, forward, backward, optimizer, EMA, the x0-hat losses) with the shipped GPU recipe's losses
-(experiments/pretrain_bedroom_gpu.yaml), next to the matrix-multiply rate measured in the same run (float32
-on the CPU, bfloat16 on CUDA, square 1024 / 8192 matrices; the best of the rates measured before the first row and
+(experiments/pretrain_bedroom_gpu.yaml), next to the matrix-multiply rate measured in the same run (square 1024 /
+8192 matrices on the CPU / CUDA, in the row's precision; the best of the rates measured before the first row and
 after each row's timings, since a shared machine's rate drifts) and the model FLOPs per room:
 
-    fraction = rooms/s x model FLOPs per room / matmul FLOP/s
+    fraction = rooms/s x model FLOPs per room / matmul FLOP/s in the row's precision
+
+Rows come in float32 and bfloat16 (autocast) on the CPU, bfloat16 on CUDA (``--precisions``). A bfloat16 row on
+the CPU also gives ``fraction_of_fp32_matmul``, against the float32 rate (the issue's reference on a CPU).
 
 Model FLOPs are what torch's FLOP counter counts for one step of the plain layers (the PointNet's
 (B, P, F) activation formed, as :meth:`PointNetEncoder.encode_reference` does), forward and backward. The
@@ -39,7 +42,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 import torch  # noqa: E402
 from torch.utils.flop_counter import FlopCounterMode  # noqa: E402
 
-from agents.denoiser import SceneDenoiser  # noqa: E402
+from agents.denoiser import Attention, SceneDenoiser  # noqa: E402
 from agents.pointnet import PointNetEncoder  # noqa: E402
 from agents.pretrain import (TrainingBatch, batch_loss, draw_batch, load_config, loss_feature_weights,  # noqa: E402
                              training_step)
@@ -58,9 +61,10 @@ def synchronize(device: torch.device) -> None:
         torch.cuda.synchronize(device)
 
 
-def matmul_flops(device: torch.device, seconds: float = 2.0) -> float:
-    """Measured matrix-multiply rate (FLOP/s): float32 1024 x 1024 on the CPU, bfloat16 8192 x 8192 on CUDA."""
-    n, dtype = (8192, torch.bfloat16) if device.type == "cuda" else (1024, torch.float32)
+def matmul_flops(device: torch.device, precision: str, seconds: float = 2.0) -> float:
+    """Measured matrix-multiply rate (FLOP/s) in ``precision`` (fp32 or bf16): 1024 x 1024 on the CPU, 8192 x 8192
+    on CUDA."""
+    n, dtype = 8192 if device.type == "cuda" else 1024, {"fp32": torch.float32, "bf16": torch.bfloat16}[precision]
     a, b = torch.randn(n, n, device=device, dtype=dtype), torch.randn(n, n, device=device, dtype=dtype)
     for _ in range(3):
         a @ b
@@ -77,9 +81,9 @@ class Setup:
     """A training step of ``preset`` at ``batch`` rooms on ``device``: the shipped GPU recipe's losses, bf16 on
     CUDA, procedural bedrooms resident on the device."""
 
-    def __init__(self, preset: str, batch: int, device: torch.device, data: SceneTensors, stats, compile_: bool):
-        self.cfg = load_config(RECIPE, preset=preset, batch_size=batch,
-                               precision="bf16" if device.type == "cuda" else "fp32")
+    def __init__(self, preset: str, batch: int, device: torch.device, data: SceneTensors, stats, compile_: bool,
+                 precision: str = "fp32"):
+        self.cfg = load_config(RECIPE, preset=preset, batch_size=batch, precision=precision)
         self.spec = get_room(self.cfg.room)
         self.stats, self.batch, self.device = stats, batch, device
         self.data = data.to(device)
@@ -186,10 +190,12 @@ class Setup:
 
 @contextlib.contextmanager
 def plain_step():
-    """The step as plain layers: the PointNet's (B, P, F) activation formed, the x0-hat losses on every scene."""
+    """The step as plain layers: the PointNet's (B, P, F) activation formed, the floor tokens' keys and values
+    projected, the x0-hat losses on every scene."""
     import agents.x0_losses as x0_losses
 
     with mock.patch.object(PointNetEncoder, "encode", PointNetEncoder.encode_reference), \
+            mock.patch.object(Attention, "forward", Attention.forward_reference), \
             mock.patch.object(x0_losses, "on_rows", lambda mask, per_scene, *scenes: per_scene(*scenes) * mask):
         yield
 
@@ -197,7 +203,8 @@ def plain_step():
 def fits(preset: str, batch: int, device: torch.device, data, stats, max_step_seconds: float) -> bool:
     """Whether a step of ``batch`` rooms runs: in memory on a GPU, in under ``max_step_seconds`` on the CPU."""
     try:
-        setup = Setup(preset, batch, device, data, stats, compile_=False)
+        setup = Setup(preset, batch, device, data, stats, compile_=False,
+                      precision="bf16" if device.type == "cuda" else "fp32")
         t0 = time.perf_counter()
         setup.step()
         synchronize(device)
@@ -225,6 +232,7 @@ def main(argv=None) -> int:
     p.add_argument("--batches", default="512,max", help="comma-separated batch sizes and/or 'max' (default 512,max)")
     p.add_argument("--repeats", type=int, default=5, help="timings per row (default 5; each of 3 steps)")
     p.add_argument("--compile", action="store_true", help="also time the step with torch.compile (CUDA)")
+    p.add_argument("--precisions", help="comma-separated fp32 / bf16 (default: fp32,bf16 on the CPU, bf16 on CUDA)")
     p.add_argument("--max-step-seconds", type=float, default=8.0,
                    help="on the CPU, 'max' is the largest batch whose step takes less (default 8)")
     p.add_argument("--rooms", type=int, default=2000, help="procedural bedrooms to draw batches from (default 2000)")
@@ -237,36 +245,46 @@ def main(argv=None) -> int:
     stats = stats_for_training(layouts, "bedroom", rotation_augment=True)
     stats = replace(stats, translation_frame="room")
     data = SceneTensors.from_layouts(layouts, get_room("bedroom").max_objects)
-    matmul = matmul_flops(device)
+    precisions = (args.precisions or ("bf16" if device.type == "cuda" else "fp32,bf16")).split(",")
+    if not set(precisions) <= {"fp32", "bf16"}:
+        p.error(f"--precisions: fp32 and/or bf16, got {args.precisions!r}")
+    references = ["fp32"] if device.type == "cpu" else []  # the float32 rate is the CPU rows' common reference
+    matmul = {prec: matmul_flops(device, prec) for prec in dict.fromkeys(precisions + references)}
     print(f"{platform.processor() or platform.machine()}, torch {torch.__version__}, {torch.get_num_threads()} threads, "
           f"device {device}" + (f" ({torch.cuda.get_device_name(device)})" if device.type == "cuda" else ""))
-    print(f"matmul ({'bf16' if device.type == 'cuda' else 'fp32'}): {matmul / 1e9:.1f} GFLOP/s")
+    print("matmul: " + ", ".join(f"{prec} {rate / 1e9:.1f} GFLOP/s" for prec, rate in matmul.items()))
     rows = []
     presets = args.presets or ("small,paper" if device.type == "cuda" else "small")
     for preset in presets.split(","):
         batches = []
         for b in args.batches.split(","):
             batches.append(largest_batch(preset, device, data, stats, args.max_step_seconds) if b == "max" else int(b))
-        for batch in dict.fromkeys(batches):
+        for batch, precision in ((b, prec) for b in dict.fromkeys(batches) for prec in precisions):
             for compile_ in ((False, True) if args.compile else (False,)):
-                setup = Setup(preset, batch, device, data, stats, compile_)
+                setup = Setup(preset, batch, device, data, stats, compile_, precision)
                 setup.step()  # warm-up (compiles)
                 setup.step()
                 seconds = setup.seconds_per_step(args.repeats)
                 plain_seconds = setup.seconds_per_step(args.repeats, plain=True) if not compile_ else None
-                matmul = max(matmul, matmul_flops(device))  # the best of the rates measured so far: a strict reference
+                for prec in matmul:  # the best of the rates measured so far: a strict reference
+                    matmul[prec] = max(matmul[prec], matmul_flops(device, prec))
                 model_flops, executed = setup.flops_per_room(True), setup.flops_per_room(False)
-                row = {"device": str(device), "preset": preset, "batch": batch, "compile": compile_,
-                       "rooms_per_s": batch / seconds, "flops_per_room": model_flops,
-                       "executed_flops_per_room": executed, "matmul_flops_per_s": matmul,
-                       "fraction": batch / seconds * model_flops / matmul, "shares": setup.shares(args.repeats),
+                row = {"device": str(device), "preset": preset, "batch": batch, "precision": precision,
+                       "compile": compile_, "rooms_per_s": batch / seconds, "flops_per_room": model_flops,
+                       "executed_flops_per_room": executed, "matmul_flops_per_s": matmul[precision],
+                       "fraction": batch / seconds * model_flops / matmul[precision],
+                       "shares": setup.shares(args.repeats),
                        "plain_rooms_per_s": batch / plain_seconds if plain_seconds else None}
+                if device.type == "cpu" and precision != "fp32":
+                    row["fraction_of_fp32_matmul"] = batch / seconds * model_flops / matmul["fp32"]
                 if device.type == "cuda":
                     row.update(setup.gpu_profile())
                 rows.append(row)
-                print(f"{preset:6s} batch {batch:6d}{' compiled' if compile_ else ''}: {row['rooms_per_s']:9.0f} rooms/s, "
-                      f"{model_flops / 1e6:.0f} MFLOP/room (executed {executed / 1e6:.0f}), "
-                      f"{row['fraction']:.1%} of the matmul rate"
+                print(f"{preset:6s} batch {batch:6d} {precision}{' compiled' if compile_ else ''}: "
+                      f"{row['rooms_per_s']:9.0f} rooms/s, {model_flops / 1e6:.0f} MFLOP/room (executed "
+                      f"{executed / 1e6:.0f}), {row['fraction']:.1%} of the {precision} matmul rate"
+                      + (f" ({row['fraction_of_fp32_matmul']:.1%} of the fp32 one)"
+                         if "fraction_of_fp32_matmul" in row else "")
                       + (f"; {plain_seconds / seconds:.2f} x the plain step's {row['plain_rooms_per_s']:.0f} rooms/s"
                          if plain_seconds else "") + "; shares "
                       + ", ".join(f"{k} {v:.0%}" for k, v in row["shares"].items())

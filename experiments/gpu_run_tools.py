@@ -395,7 +395,8 @@ def markdown_report(work: Path) -> str:
             shares = ", ".join(f"{k} {v:.0%}" for k, v in (r.get("shares") or {}).items())
             launches = (f"{r['kernels_per_step']:,.0f} | {r['gpu_busy_ms']:.1f}, {r['host_ms']:.1f}" if "host_ms" in r
                         else "– | –")
-            L.append(f"| {r['device']} | {r['preset']} | {r['batch']} | {'yes' if r['compile'] else 'no'} | "
+            L.append(f"| {r['device']} {r.get('precision', '')} | {r['preset']} | {r['batch']} | "
+                     f"{'yes' if r['compile'] else 'no'} | "
                      f"{r['rooms_per_s']:,.0f} | {r['flops_per_room'] / 1e6:.1f} | {r['fraction']:.1%} | {shares} | "
                      f"{launches} |")
     elif bench.get("rows_printed"):

@@ -194,6 +194,40 @@ def test_attention_is_lora_ready():
     assert not any(isinstance(m, nn.MultiheadAttention) for m in net.modules())
 
 
+def test_cross_attention_without_projecting_the_context_matches_the_plain_layers():
+    """The cross-attention to the floor tokens with the key and value projections moved onto the queries gives the
+    plain layers' output and gradients (float64, to rounding; the key bias, which the softmax drops, gets none),
+    and a LoRA-wrapped key or value projection takes the plain path, so the adapter is applied."""
+    peft = pytest.importorskip("peft")
+    from agents.denoiser import Attention
+
+    torch.manual_seed(0)
+    att = _randomised(Attention(16, 4)).double()
+    x, ctx = torch.randn(3, 5, 16, dtype=torch.float64), torch.randn(3, 9, 16, dtype=torch.float64)
+    results = []
+    for forward in (Attention.forward_reference, Attention.forward_context_absorbed):
+        xs, cs = x.clone().requires_grad_(True), ctx.clone().requires_grad_(True)
+        out = forward(att, xs, cs)
+        grads = torch.autograd.grad(out.square().sum(), [xs, cs] + list(att.parameters()), allow_unused=True)
+        results.append([out] + [g if g is not None else torch.zeros_like(p) for g, p in zip(grads, [xs, cs] +
+                                                                                               list(att.parameters()))])
+    for a, b in zip(*results):
+        assert torch.allclose(a, b, atol=1e-10)
+    assert float(results[0][0].detach().abs().max()) > 0.1  # not a trivially zero output
+
+    calls = []
+    lora = peft.get_peft_model(nn.Sequential(att), peft.LoraConfig(r=2, target_modules=["k_proj"]))
+    wrapped = lora.base_model.model[0]
+    original = Attention.forward_context_absorbed
+    Attention.forward_context_absorbed = lambda self, *a: calls.append(1) or original(self, *a)
+    try:
+        assert torch.allclose(wrapped(x, ctx), results[0][0], atol=1e-10)  # LoRA B starts at zero
+        assert not calls
+        assert att.forward(x, x) is not None and not calls  # no more context tokens than queries: plain path
+    finally:
+        Attention.forward_context_absorbed = original
+
+
 def test_peft_lora_changes_outputs_consistently_in_train_and_eval():
     peft = pytest.importorskip("peft")
     net = _randomised(SceneDenoiser(DenoiserConfig.tiny(), BEDROOM.feature_dim))

@@ -384,7 +384,8 @@ def test_cli_pretrain_and_sample(tmp_path, capsys):
 
 
 def test_the_fast_training_step_matches_a_plain_reference_step(tmp_path):
-    """Three steps of :func:`training_step` (the PointNet max-pool without its (B, P, F) activation, the x0-hat
+    """Three steps of :func:`training_step` (the PointNet max-pool without its (B, P, F) activation, the
+    cross-attention without the floor tokens' keys and values, the x0-hat
     losses on the low-noise scenes only, fused AdamW, a foreach EMA) against plain steps written out here
     (the plain layers, the losses on every scene times the mask, torch's default AdamW, a loop over the EMA
     weights), from the same weights on the same batches: the same losses, weights and EMA weights."""
@@ -392,7 +393,7 @@ def test_the_fast_training_step_matches_a_plain_reference_step(tmp_path):
 
     import agents.pretrain as pre
     import agents.x0_losses as x0_losses
-    from agents.denoiser import SceneDenoiser
+    from agents.denoiser import Attention, SceneDenoiser
     from agents.pointnet import PointNetEncoder
     from iarcs_env.schedule import NoiseSchedule
 
@@ -418,6 +419,7 @@ def test_the_fast_training_step_matches_a_plain_reference_step(tmp_path):
         fast, _ = pre.training_step(nets[0], nets[0], emas[0], fast_opt, schedule, cfg, BEDROOM, stats, weights,
                                     lambda: batch, 1e-3, 0.9)
         with mock.patch.object(PointNetEncoder, "encode", PointNetEncoder.encode_reference), \
+                mock.patch.object(Attention, "forward", Attention.forward_reference), \
                 mock.patch.object(x0_losses, "on_rows", lambda mask, per_scene, *scenes: per_scene(*scenes) * mask):
             plain = pre.batch_loss(nets[1], schedule, batch, cfg, BEDROOM, stats, weights).mean()
         plain_opt.zero_grad()
