@@ -217,7 +217,7 @@ class Attention(nn.Module):
 
 
 def _attend(q: torch.Tensor, k: torch.Tensor, v: torch.Tensor, dropout: float):
-    """``F.scaled_dot_product_attention``; in float32 on the CPU, where its bfloat16 backward is 8 times slower
+    """``F.scaled_dot_product_attention``; in float32 on the CPU, where its bfloat16 backward is ten times slower
     than the float32 one (docs/results/benchmarks.md, "Pretraining")."""
     if q.device.type != "cpu" or torch.bfloat16 not in (q.dtype, k.dtype, v.dtype):
         return F.scaled_dot_product_attention(q, k, v, dropout_p=dropout)
