@@ -101,6 +101,9 @@ class DDPOConfig:
     """``physics-gradient`` only: > 0 charges every ground object out of R_reach's reach this weight times how much
     its widest free path is too narrow (m: the agent radius, 0.3 m, less the path's clearance at its narrowest;
     :func:`iarcs_env.clearance.reach_clearance`): the objects that close a walkway move to open it."""
+    descent_steps: int = 300
+    """``descent-imitation`` only (agents/descent_imitation.py): the Adam steps that move each rollout's rooms down
+    the physics penalty before the adapter learns them."""
     out_of_bound_weight: float = 1.0
     """``physics-gradient`` only: the weight of the out-of-bound area (m^2) next to the overlap volume (m^3)."""
     out_of_bound_shrink: float = OUT_OF_BOUND_SHRINK

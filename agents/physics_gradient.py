@@ -77,11 +77,24 @@ def physics_penalty(x0: torch.Tensor, stats, floors, out_of_bound_weight: float 
     distance from ``contact_gap`` while it is under ``CONTACT_REACH`` (module doc); a pair of
     ``uncharged_pairs`` classes is not charged its overlap; ``reach_weight`` times how
     much the widest free path to each ground object is narrower than R_reach's agent (m)."""
-    spec = stats.spec
     trans, half, yaws = decode_geometry(x0, stats, floor_half_extents(floors).to(x0))
-    labels = x0[..., 8:].argmax(-1)
+    return layout_penalty(trans, half, yaws, x0[..., 8:].argmax(-1), stats.spec, floors,
+                          out_of_bound_weight=out_of_bound_weight, floor_weight=floor_weight,
+                          overlap_weight=overlap_weight, out_of_bound_shrink=out_of_bound_shrink, contact=contact,
+                          contact_gap_weight=contact_gap_weight, contact_gap=contact_gap,
+                          overlap_measure=overlap_measure, uncharged_pairs=uncharged_pairs, reach_weight=reach_weight)
+
+
+def layout_penalty(trans: torch.Tensor, half: torch.Tensor, yaws: torch.Tensor, labels: torch.Tensor, spec, floors,
+                   out_of_bound_weight: float = 1.0, floor_weight: float = 0.0, overlap_weight: float = 1.0,
+                   out_of_bound_shrink: float = geo.OUT_OF_BOUND_SHRINK, contact: dict | None = None,
+                   contact_gap_weight: float = 0.0, contact_gap: float = DDPOConfig.contact_gap,
+                   overlap_measure: str = "volume", uncharged_pairs: list | None = None,
+                   reach_weight: float = 0.0) -> torch.Tensor:
+    """:func:`physics_penalty` of rooms given in metres: translations (B, N, 3), half sizes (B, N, 3), yaws (B, N)
+    and class labels (B, N) of room type ``spec`` (a label past its classes is an empty slot)."""
     valid = labels != spec.empty_index
-    ground = torch.tensor(spec.ground_mask(), device=x0.device)[labels]
+    ground = torch.tensor(spec.ground_mask(), device=labels.device)[labels]
     separation = geo.bounds_separations(trans, half, yaws)
     overlap = separation.clamp_min(0)
     pairs = (ground[:, :, None] & ground[:, None]).triu(1)
@@ -92,7 +105,7 @@ def physics_penalty(x0: torch.Tensor, stats, floors, out_of_bound_weight: float 
         charge = (sooner + DEPTH_MARGIN).clamp_min(0) * (overlap[..., 1] > 0)
     else:
         raise ValueError(f"overlap_measure must be 'volume' or 'depth', got {overlap_measure!r}")
-    gaps = charge.new_zeros(len(x0))
+    gaps = charge.new_zeros(len(labels))
     if contact:
         spared = contact_pairs(labels, valid, spec, contact)
         if contact_gap_weight:

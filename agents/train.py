@@ -54,7 +54,8 @@ class TrainConfig:
     ``[support_surface]``; the other objects follow ``init_adapter`` (with ``required_objects``, which gives the
     rooms' classes). Empty: every object, or with ``init_adapter`` the objects that adapter changes."""
     algorithm: str = "ddpo"
-    """ddpo (= ddpo-is), ddpo-sf or physics-gradient (agents/physics_gradient.py)."""
+    """ddpo (= ddpo-is), ddpo-sf, physics-gradient (agents/physics_gradient.py) or descent-imitation
+    (agents/descent_imitation.py)."""
     num_envs: int = 32
     """B: scenes per rollout batch (the vector env's size)."""
     num_steps: int = 20

@@ -164,12 +164,33 @@ def _in_chunks(fn):
     return chunked
 
 
-@_in_chunks
 def reach_clearance(floors: Sequence[FloorPlan], translations, half_sizes, yaws, ground: torch.Tensor,
                     radius: float, cell: float = WALK_CELL) -> torch.Tensor:
     """``(B, N)`` reach clearance (m, module doc) of each ground object for an agent of ``radius``: the object is
     reachable (:func:`iarcs_env.relations.reachable`) exactly when it is at least ``radius``. Differentiable in
     the geometry; ``-radius`` (no gradient) for other slots and for objects with no grid cell beside them."""
+    points = reach_points(floors, translations, half_sizes, yaws, ground, radius, cell)
+    return clearance_of_points(floors, points, translations, half_sizes, yaws, ground, radius)
+
+
+def clearance_of_points(floors: Sequence[FloorPlan], points: torch.Tensor, translations, half_sizes, yaws,
+                        ground: torch.Tensor, radius: float) -> torch.Tensor:
+    """``(B, N)`` :func:`point_clearance` of each object's point ``(B, N, 2)`` (:func:`reach_points`; NaN: none),
+    ``-radius`` (no gradient) where it has none: the reach clearance of the geometry the points were found on, and
+    of geometry moved a little since (the bottleneck points kept, so the grid is not searched every step)."""
+    found = torch.isfinite(points[..., 0])
+    t = translations
+    value = point_clearance(torch.nan_to_num(points).to(t), floor_edges(floors).to(t), t, half_sizes, yaws,
+                            ground.to(t.device))
+    keep = (ground.cpu() & found.cpu()).to(value.device)
+    return torch.where(keep, value, torch.full_like(value, -radius))
+
+
+@_in_chunks
+def reach_points(floors: Sequence[FloorPlan], translations, half_sizes, yaws, ground: torch.Tensor,
+                 radius: float, cell: float = WALK_CELL) -> torch.Tensor:
+    """``(B, N, 2)`` the point (x, z; m) of each object's reach clearance (module doc): the bottleneck cell's centre
+    of the widest path to it; NaN for other slots and for objects with no grid cell beside them. No gradient."""
     grid = ClearanceGrid(floors, translations, half_sizes, yaws, ground, cell)
     best = grid.widest_paths(radius)
     with torch.no_grad():  # cells 8-adjacent to the footprint inflated by the radius
@@ -178,9 +199,9 @@ def reach_clearance(floors: Sequence[FloorPlan], translations, half_sizes, yaws,
         widths = best[:, None].expand_as(beside).masked_fill(~beside, float("-inf")).flatten(2)
         width, end = widths.max(-1)  # (B, N)
     cells = _bottleneck_cells(grid, best, end)
-    value = grid.clearance_at(cells)
+    points = grid.centres.flatten(1, 2)[torch.arange(len(cells))[:, None], cells]
     keep = ground.cpu() & torch.isfinite(width)
-    return torch.where(keep.to(value.device), value, torch.full_like(value, -radius))
+    return points.masked_fill(~keep[..., None], float("nan")).to(translations.dtype)
 
 
 @_in_chunks

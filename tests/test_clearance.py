@@ -63,3 +63,23 @@ def test_a_narrow_walkway_has_its_clearance_and_its_gradient_widens_it():
     middle = disk_clearance(empty.floors, empty.translations.double(), empty.half_sizes.double(),
                             empty.yaws.double(), empty.ground_mask)
     assert middle.item() == pytest.approx(1.975, abs=1e-6)  # a cell centre 0.025 m from the room's middle
+
+
+def test_kept_bottleneck_points_give_the_reach_clearance_and_follow_the_furniture():
+    """The narrow walkway above: the clearance at the bottleneck points found once is the reach clearance; with the
+    cabinet moved 0.05 m away from the gap, the kept point's clearance is its new distance to the nearest of cabinet
+    and wall (0.275 m: the wall), without searching the grid again; other slots get -radius."""
+    from iarcs_env.clearance import clearance_of_points, reach_points
+
+    layout = make_layout([box("cabinet", 1.75, 1.2, 1.74, 0.3), box("nightstand", 0.3, 0.3, 0.25, 0.25),
+                          box("wardrobe", 2.0, 3.5, 1.0, 0.3), box("ceiling_lamp", 2.0, 2.0, 0.2, 0.2, y0=2.4)],
+                         floor=SQUARE)
+    batch = SceneBatch.from_layouts([layout])
+    t, h, y, ground = batch.translations.double(), batch.half_sizes.double(), batch.yaws.double(), batch.ground_mask
+    points = reach_points(batch.floors, t, h, y, ground, 0.3)
+    assert torch.isnan(points[0, 3]).all() and torch.isfinite(points[0, :3]).all()
+    kept = clearance_of_points(batch.floors, points, t, h, y, ground, 0.3)
+    assert torch.allclose(kept, reach_clearance(batch.floors, t, h, y, ground, 0.3))
+    moved = t.clone()
+    moved[0, 0, 0] -= 0.05
+    assert clearance_of_points(batch.floors, points, moved, h, y, ground, 0.3)[0, 1].item() == pytest.approx(0.275)

@@ -13,6 +13,7 @@ from conftest import perturb_zero_init
 from agents.callbacks import CheckpointCallback, EvalCallback, StopTrainingOnRewardThreshold
 from agents.algorithms import get_algorithm
 from agents.ddpo import DDPO, DDPOSF, gae_advantages
+from agents.descent_imitation import DescentImitation
 from agents.physics_gradient import PhysicsGradient, physics_penalty
 from rewards.composite import CompositeReward
 from rewards.sandbox import SandboxedReward
@@ -314,6 +315,34 @@ def test_physics_gradient_lowers_the_penalty_of_its_rollouts_and_resumes_by_name
     assert type(resumed) is PhysicsGradient and resumed.config.gradient_steps == 2
     with pytest.raises(ValueError, match="gradient_steps must be at least 1"):
         make_model(PhysicsGradient, gradient_steps=0)
+
+
+def test_descent_imitation_targets_its_rollouts_rooms_moved_apart_and_resumes_by_name(tmp_path):
+    """The targets are the rollouts' final rooms with only their objects' x and z moved, at a lower penalty; an
+    update changes the adapter only. (Whether an adapter learns them is measured on the living-room prior:
+    docs/results/stage1_living_dining.md.)"""
+    model = make_model(DescentImitation, learning_rate=1e-2, descent_steps=60)
+    assert get_algorithm("descent-imitation") is DescentImitation
+    rollout = model.collect_rollouts()
+    last = rollout[:, -1]
+    floors = [model.venv.floors[int(i)] for i in last["floor_index"]]
+    target, info = model.targets(last["action"], floors)
+    assert info["physics_descended"] < 0.7 * info["physics"]
+    decoded = last["action"].clone()  # decoding clamps translation features to [-1, 1]
+    decoded[..., :3] = decoded[..., :3].clamp(-1, 1)
+    moved = (target - decoded).abs().amax((0, 1))
+    assert moved[[0, 2]].min() > 0.01 and moved[1:2].max() == 0 and moved[3:].max() == 0
+    frozen = {k: v.clone() for k, v in model.policy.model.state_dict().items() if "lora_" not in k}
+    before = adapter_weights(model)
+    stats = model.train(rollout)
+    assert stats["loss"] > 0 and stats["physics_descended"] == pytest.approx(info["physics_descended"])
+    assert all(not torch.equal(before[k], v) for k, v in adapter_weights(model).items() if "lora_B" in k)
+    assert all(torch.equal(frozen[k], v) for k, v in model.policy.model.state_dict().items() if "lora_" not in k)
+    model.save(tmp_path / "ckpt")
+    resumed = DDPO.load(tmp_path / "ckpt", DiffusionPolicy(tiny_prior(), num_steps=STEPS), make_env(), verbose=0)
+    assert type(resumed) is DescentImitation and resumed.config.descent_steps == 60
+    with pytest.raises(ValueError, match="descent_steps must be at least 1"):
+        make_model(DescentImitation, descent_steps=0)
 
 
 LOW_TOPS = ("def reward(scene):\n"
