@@ -75,6 +75,7 @@ class DDPOConfig:
     step's change of the predicted scene's reward, centred and standardised per step. lambda = 1 is the
     fitted baseline above; lambda = 0 credits a step only with what it changed itself (least variance,
     greedy: biased towards improvements the following steps keep)."""
+    # the fields marked ``physics-gradient`` only below are also descent-imitation's (agents/descent_imitation.py)
     gradient_steps: int = 4
     """``physics-gradient`` only (agents/physics_gradient.py): the last k stochastic steps whose x0_hat gets the
     gradient of the physics penalty (and of a stage-2 task reward)."""

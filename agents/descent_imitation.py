@@ -3,13 +3,17 @@
 Each epoch the policy's own rooms (the rollouts' final x_0) are moved down the penalty of
 :func:`~agents.physics_gradient.layout_penalty` (the run's weights, as :mod:`agents.physics_gradient` uses them)
 by ``descent_steps`` steps of Adam (:data:`DESCENT_LR` m) on each object's floor position (x, z; sizes, heights,
-yaws and classes kept). The moved rooms x_0* are the targets of the pretraining loss, on the adapter:
+yaws and classes kept). The moved room x_0* is the target of the clean scene the policy predicts at the states x_t
+of the last ``gradient_steps`` stochastic steps of the same rollout (where :mod:`agents.physics_gradient` applies
+the penalty's gradient):
 
-    loss = mean over the adapted features of the rooms' objects of  || x0_hat_theta(q_sample(x_0*, t, eps), t) - x_0* ||^2
+    loss = mean over the adapted features of the rooms' objects of  || x0_hat_theta(x_t, t) - x_0* ||^2
 
-with t uniform over the training timesteps. It is the policy-improvement step of expert iteration (RAFT's
-reward-ranked fine-tuning, with the ranking replaced by the reward's own descent): the policy regresses onto its
-own samples, improved.
+It is the policy-improvement step of expert iteration (RAFT's reward-ranked fine-tuning, with the ranking replaced
+by the reward's own descent): the policy regresses onto its own samples, improved. On the states it visited, not on
+fresh noise of a pretraining loss: the scene's noise is then the rollout's own, and the loss's gradient is the
+room's move, not the denoising error of a random draw (a first run with that loss, on the living-room prior, had not
+moved Col_obj in 10 epochs).
 
 Why: the physics gradient moves x0_hat of the last denoising steps one gradient step per update; on the living-room
 prior its adapters lowered the penalty but not Col_obj (49.1% -> 46-49%), while descent on the prior's own rooms
@@ -68,7 +72,7 @@ class DescentImitation(PhysicsGradient):
     penalty's weights and measures of :class:`~agents.physics_gradient.PhysicsGradient` (``overlap_weight``,
     ``overlap_measure``, ``contact_gap_weight``, ``contact_gap``, ``uncharged_pairs``, ``reach_weight``,
     ``out_of_bound_weight``, ``out_of_bound_shrink``), and ``learning_rate``, ``minibatch_size``,
-    ``num_inner_epochs``, ``max_grad_norm``."""
+    ``num_inner_epochs``, ``max_grad_norm`` and ``gradient_steps``."""
 
     name = "DESCENT-IMITATION"
 
@@ -106,25 +110,24 @@ class DescentImitation(PhysicsGradient):
         cfg, venv, policy = self.config, self.venv, self.policy
         last = rollout[:, -1]
         floors = [venv.floors[int(i)] for i in last["floor_index"]]
-        x0 = policy.prior.with_clean_classes(last["action"], last["classes"]) if "classes" in last.keys() \
-            else last["action"]
+        given = "classes" in last.keys()
+        x0 = policy.prior.with_clean_classes(last["action"], last["classes"]) if given else last["action"]
         target, info = self.targets(x0, floors)
-        adapted = ~policy.reference_features(policy.adapter) if policy.reference_features(policy.adapter) is not None \
-            else torch.ones(target.shape[-1], dtype=torch.bool)
+        keep = policy.reference_features(policy.adapter)
+        adapted = torch.ones(target.shape[-1], dtype=torch.bool) if keep is None else ~keep
         weight = ((target[..., 8:].argmax(-1) != venv.stats.spec.empty_index)[..., None] & adapted).float()
-        schedule = policy.schedule
+        steps = self.stochastic_steps()[-cfg.gradient_steps:]
         losses = []
         policy.model.eval()
         for _ in range(cfg.num_inner_epochs):
             perm = torch.randperm(len(target), generator=self.generator)
             for start in range(0, len(target), cfg.minibatch_size):
                 rows = perm[start:start + cfg.minibatch_size]
-                x0_star, w = target[rows].to(self.device), weight[rows].to(self.device)
-                t = schedule.sample_timesteps(len(rows), self.generator, self.device)
-                noise = torch.randn(x0_star.shape, generator=self.generator).to(self.device)
-                x_t = schedule.q_sample(x0_star, t, noise)
-                classes = last["classes"][rows].to(self.device) if "classes" in last.keys() else None
-                x0_hat = policy.predict_x0(x_t, t, last["floor"][rows].to(self.device), classes)
+                mb = rollout[rows][:, steps].to(self.device)  # the states the policy visited, (b, k)
+                x0_hat = policy.predict_x0(mb["x_t"].flatten(0, 1), mb["t"].flatten(0, 1), mb["floor"].flatten(0, 1),
+                                           mb["classes"].flatten(0, 1) if given else None)
+                x0_star = target[rows].to(self.device).repeat_interleave(len(steps), 0)
+                w = weight[rows].to(self.device).repeat_interleave(len(steps), 0)
                 loss = ((x0_hat - x0_star).square() * w).sum() / w.sum().clamp_min(1)
                 self.optimizer.zero_grad(set_to_none=True)
                 loss.backward()
