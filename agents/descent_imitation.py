@@ -18,7 +18,8 @@ moved Col_obj in 10 epochs).
 Why: the physics gradient moves x0_hat of the last denoising steps one gradient step per update; on the living-room
 prior its adapters lowered the penalty but not Col_obj (49.1% -> 46-49%), while descent on the prior's own rooms
 reaches a third fewer colliding objects with more of them reachable (``research/layout_descent.py``;
-docs/results/stage1_living_dining.md). The walkway term (``reach_weight``) charges the clearance at each object's
+docs/results/stage1_living_dining.md). Measured there: this adapter, 11 epochs on that prior, learned the move
+common to the rooms (furniture towards the walls) and not each room's own; not shipped. The walkway term (``reach_weight``) charges the clearance at each object's
 path bottleneck (:func:`iarcs_env.clearance.reach_points`), searched for again every :data:`REACH_REFRESH` steps.
 """
 
@@ -32,7 +33,7 @@ from iarcs_env.clearance import clearance_of_points, reach_points
 from iarcs_env.scene import decode_geometry, floor_half_extents, translation_scale
 
 from . import distributed
-from .physics_gradient import PhysicsGradient, layout_penalty
+from .physics_gradient import PhysicsGradient, layout_penalty, penalty_weights
 
 DESCENT_LR = 0.01
 """m: Adam's step on the objects' positions."""
@@ -93,10 +94,7 @@ class DescentImitation(PhysicsGradient):
         extents = floor_half_extents(floors)
         trans, half, yaws = decode_geometry(x0, stats, extents)
         labels = x0[..., 8:].argmax(-1)
-        weights = dict(out_of_bound_weight=cfg.out_of_bound_weight, floor_weight=0.0,
-                       overlap_weight=cfg.overlap_weight, out_of_bound_shrink=cfg.out_of_bound_shrink,
-                       contact=self.contact(), contact_gap_weight=cfg.contact_gap_weight, contact_gap=cfg.contact_gap,
-                       overlap_measure=cfg.overlap_measure, uncharged_pairs=cfg.uncharged_pairs)
+        weights = penalty_weights(cfg, self.contact())
         moved = descend_layouts(trans, half, yaws, labels, spec, floors, cfg.descent_steps, cfg.reach_weight,
                                 **weights)
         lo, hi = translation_scale(stats, x0, extents, half, yaws)

@@ -132,11 +132,17 @@ def config_penalty(x0: torch.Tensor, stats, floors, cfg: DDPOConfig, contact: di
                    floor_weight: float = 0.0) -> torch.Tensor:
     """:func:`physics_penalty` with the weights and measures of a run's DDPO config ``cfg``; ``contact`` and
     ``floor_weight`` come from its reward (:meth:`PhysicsGradient.contact`, :meth:`PhysicsGradient.floor_weight`)."""
-    return physics_penalty(x0, stats, floors, out_of_bound_weight=cfg.out_of_bound_weight, floor_weight=floor_weight,
-                           overlap_weight=cfg.overlap_weight, out_of_bound_shrink=cfg.out_of_bound_shrink,
-                           contact=contact, contact_gap_weight=cfg.contact_gap_weight, contact_gap=cfg.contact_gap,
-                           overlap_measure=cfg.overlap_measure, uncharged_pairs=cfg.uncharged_pairs,
-                           reach_weight=cfg.reach_weight)
+    return physics_penalty(x0, stats, floors, reach_weight=cfg.reach_weight,
+                           **penalty_weights(cfg, contact, floor_weight))
+
+
+def penalty_weights(cfg: DDPOConfig, contact: dict | None = None, floor_weight: float = 0.0) -> dict:
+    """The keyword arguments of :func:`layout_penalty` that a run's DDPO config ``cfg`` sets (all but the walkway
+    term's weight, ``cfg.reach_weight``); ``contact`` and ``floor_weight`` as for :func:`config_penalty`."""
+    return dict(out_of_bound_weight=cfg.out_of_bound_weight, floor_weight=floor_weight,
+                overlap_weight=cfg.overlap_weight, out_of_bound_shrink=cfg.out_of_bound_shrink, contact=contact,
+                contact_gap_weight=cfg.contact_gap_weight, contact_gap=cfg.contact_gap,
+                overlap_measure=cfg.overlap_measure, uncharged_pairs=cfg.uncharged_pairs)
 
 
 def task_surrogate(task_reward, x0: torch.Tensor, stats, floors) -> tuple[torch.Tensor, torch.Tensor, float]:
