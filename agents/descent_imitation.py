@@ -42,10 +42,11 @@ REACH_REFRESH = 20
 
 
 def descend_layouts(trans: torch.Tensor, half: torch.Tensor, yaws: torch.Tensor, labels: torch.Tensor, spec, floors,
-                    steps: int, reach_weight: float = 0.0, lr: float = DESCENT_LR, **weights) -> torch.Tensor:
+                    steps: int, reach_weight: float = 0.0, lr: float = DESCENT_LR, refresh: int = REACH_REFRESH,
+                    **weights) -> torch.Tensor:
     """Translations (B, N, 3) moved on the floor (x, z) by ``steps`` steps of Adam down :func:`layout_penalty` of
     the rooms (``weights``: its keyword arguments) plus ``reach_weight`` times each ground object's walkway
-    shortfall (m), the clearance at its path bottleneck point (found again every :data:`REACH_REFRESH` steps)."""
+    shortfall (m), the clearance at its path bottleneck point (found again every ``refresh`` steps)."""
     trans0, half, yaws = trans.detach().double(), half.detach().double(), yaws.detach().double()
     valid = labels != spec.empty_index
     ground = torch.tensor(spec.ground_mask())[labels] & valid
@@ -57,7 +58,7 @@ def descend_layouts(trans: torch.Tensor, half: torch.Tensor, yaws: torch.Tensor,
         moved = trans0 + torch.stack([move[..., 0], torch.zeros_like(move[..., 0]), move[..., 1]], -1)
         loss = layout_penalty(moved, half, yaws, labels, spec, floors, **weights)
         if reach_weight:
-            if step % REACH_REFRESH == 0:
+            if step % refresh == 0:
                 points = reach_points(floors, moved.detach(), half, yaws, ground, geo.AGENT_RADIUS)
             clear = clearance_of_points(floors, points, moved, half, yaws, ground, geo.AGENT_RADIUS)
             loss = loss + reach_weight * (geo.AGENT_RADIUS - clear).clamp_min(0).sum(1)

@@ -3,7 +3,7 @@ layouts themselves, no network. Asks whether the living-room stage-1 adapters fa
 have no way down that keeps their relations and walkways (issue 39).
 
     .venv/bin/python research/layout_descent.py --room livingroom PRIOR.json --out DESCENDED.json \\
-        [--steps 300] [--reach-weight 5] [--out-of-bound-shrink 0]
+        [--steps 300] [--reach-weight 5] [--out-of-bound-shrink 0] [--refresh 20]
     iarcs evaluate --scenes DESCENDED.json --reference floors.json --features none --out report.json
 
 Each room's objects move on the floor (x and z; heights, sizes, yaws and classes kept) by
@@ -36,6 +36,7 @@ def main() -> None:
     parser.add_argument("--steps", type=int, default=300)
     parser.add_argument("--reach-weight", type=float, default=0.0)
     parser.add_argument("--out-of-bound-shrink", type=float, default=0.05)
+    parser.add_argument("--refresh", type=int, default=20, help="steps between the walkway term's grid searches")
     args = parser.parse_args()
     import torch
 
@@ -53,7 +54,7 @@ def main() -> None:
         batch = SceneBatch.from_layouts(layouts[start:start + 50])
         parts = (batch.half_sizes, batch.yaws, batch.labels, batch.spec, batch.floors)
         moved = descend_layouts(batch.translations, *parts, steps=args.steps, reach_weight=args.reach_weight,
-                                **weights)
+                                refresh=args.refresh, **weights)
         before.append(layout_penalty(batch.translations, *parts, **weights))
         after.append(layout_penalty(moved, *parts, **weights))
         batch.translations = moved
