@@ -3,7 +3,8 @@ layouts themselves, no network. Asks whether the living-room stage-1 adapters fa
 have no way down that keeps their relations and walkways (issue 39).
 
     .venv/bin/python research/layout_descent.py --room livingroom PRIOR.json --out DESCENDED.json \\
-        [--steps 300] [--reach-weight 5] [--out-of-bound-shrink 0] [--refresh 20]
+        [--steps 300] [--reach-weight 5] [--out-of-bound-shrink 0] [--refresh 20] \\
+        [--contact-gap-weight 3 --contact-gap 0.12]
     iarcs evaluate --scenes DESCENDED.json --reference floors.json --features none --out report.json
 
 Each room's objects move on the floor (x and z; heights, sizes, yaws and classes kept) by
@@ -12,7 +13,8 @@ weights of the depth configs (`experiments/ablations/stage1_ROOM_depth.yaml`): e
 depth, the out-of-bound area weighed 5, the data's contact spared (seat-table in living and dining rooms,
 nightstand-bed in bedrooms); ``--reach-weight`` adds the walkway term, ``--out-of-bound-shrink 0`` charges the whole
 footprint's area outside (R_out spares 0.05 m a side; without the margin the walkway term rests objects just through a
-wall).
+wall). The contact pairs are not charged (depth) unless ``--contact-gap-weight`` draws each to a gap, as
+``ddpo.contact_gap_weight`` does.
 """
 
 from __future__ import annotations
@@ -36,6 +38,9 @@ def main() -> None:
     parser.add_argument("--steps", type=int, default=300)
     parser.add_argument("--reach-weight", type=float, default=0.0)
     parser.add_argument("--out-of-bound-shrink", type=float, default=0.05)
+    parser.add_argument("--contact-gap-weight", type=float, default=0.0,
+                        help="> 0: a contact pair within 0.6 m drawn to --contact-gap (ddpo.contact_gap_weight)")
+    parser.add_argument("--contact-gap", type=float, default=0.05)
     parser.add_argument("--refresh", type=int, default=20, help="steps between the walkway term's grid searches")
     args = parser.parse_args()
     import torch
@@ -48,7 +53,7 @@ def main() -> None:
     torch.set_num_threads(1)
     layouts = load_layouts(args.scenes, args.room)
     weights = dict(out_of_bound_weight=5.0, out_of_bound_shrink=args.out_of_bound_shrink, contact=CONTACT[args.room],
-                   overlap_measure="depth")
+                   overlap_measure="depth", contact_gap_weight=args.contact_gap_weight, contact_gap=args.contact_gap)
     out, before, after = [], [], []
     for start in range(0, len(layouts), 50):
         batch = SceneBatch.from_layouts(layouts[start:start + 50])
