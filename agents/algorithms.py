@@ -1,7 +1,7 @@
 """The RL algorithms a training config can name (``algorithm:``), by name: DDPO-IS and DDPO-SF
 (:mod:`agents.ddpo`), the physics gradient (:mod:`agents.physics_gradient`; in stage 2 it also follows the task
-reward's own gradient, taken in the reward's sandbox) and descent imitation (:mod:`agents.descent_imitation`). Other algorithms plug in by
-subclassing :class:`agents.ddpo.DDPO` and being added here."""
+reward's own gradient, taken in the reward's sandbox) and descent imitation (:mod:`agents.descent_imitation`).
+Other algorithms plug in by subclassing :class:`agents.ddpo.DDPO` and being added here."""
 
 from __future__ import annotations
 

@@ -19,8 +19,9 @@ Why: the physics gradient moves x0_hat of the last denoising steps one gradient 
 prior its adapters lowered the penalty but not Col_obj (49.1% -> 46-49%), while descent on the prior's own rooms
 reaches a third fewer colliding objects with more of them reachable (``research/layout_descent.py``;
 docs/results/stage1_living_dining.md). Measured there: this adapter, 11 epochs on that prior, learned the move
-common to the rooms (furniture towards the walls) and not each room's own; not shipped. The walkway term (``reach_weight``) charges the clearance at each object's
-path bottleneck (:func:`iarcs_env.clearance.reach_points`), searched for again every :data:`REACH_REFRESH` steps.
+common to the rooms (furniture towards the walls) and not each room's own; not shipped. The walkway term
+(``reach_weight``) charges the clearance at each object's path bottleneck (:func:`iarcs_env.clearance.reach_points`),
+searched for again every :data:`REACH_REFRESH` steps.
 """
 
 from __future__ import annotations
@@ -53,9 +54,13 @@ def descend_layouts(trans: torch.Tensor, half: torch.Tensor, yaws: torch.Tensor,
     delta = torch.zeros(trans0.shape[:2] + (2,), dtype=torch.float64, requires_grad=True)
     optimizer = torch.optim.Adam([delta], lr=lr)
     points = None
+
+    def moved_by(d: torch.Tensor) -> torch.Tensor:  # the objects' x and z shifted, heights kept, empty slots still
+        move = d * valid[..., None]
+        return trans0 + torch.stack([move[..., 0], torch.zeros_like(move[..., 0]), move[..., 1]], -1)
+
     for step in range(steps):
-        move = delta * valid[..., None]
-        moved = trans0 + torch.stack([move[..., 0], torch.zeros_like(move[..., 0]), move[..., 1]], -1)
+        moved = moved_by(delta)
         loss = layout_penalty(moved, half, yaws, labels, spec, floors, **weights)
         if reach_weight:
             if step % refresh == 0:
@@ -65,8 +70,7 @@ def descend_layouts(trans: torch.Tensor, half: torch.Tensor, yaws: torch.Tensor,
         optimizer.zero_grad()
         loss.sum().backward()
         optimizer.step()
-    move = delta.detach() * valid[..., None]
-    return (trans0 + torch.stack([move[..., 0], torch.zeros_like(move[..., 0]), move[..., 1]], -1)).to(trans.dtype)
+    return moved_by(delta.detach()).to(trans.dtype)
 
 
 class DescentImitation(PhysicsGradient):
