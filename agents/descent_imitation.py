@@ -3,17 +3,18 @@
 Each epoch the policy's own rooms (the rollouts' final x_0) are moved down the penalty of
 :func:`~agents.physics_gradient.layout_penalty` (the run's weights, as :mod:`agents.physics_gradient` uses them)
 by ``descent_steps`` steps of Adam (:data:`DESCENT_LR` m) on each object's floor position (x, z; sizes, heights,
-yaws and classes kept). The moved room x_0* is the target of the clean scene the policy predicts at the states x_t
-of the last ``gradient_steps`` stochastic steps of the same rollout (where :mod:`agents.physics_gradient` applies
-the penalty's gradient):
+yaws and classes kept). The move dx_0 = x_0* - x_0 (in model features) is then added to the clean scene the policy
+predicts at the states x_t of the last ``gradient_steps`` steps of the same rollout, the last being the step at
+t = 0 whose x0_hat is the room sampled:
 
-    loss = mean over the adapted features of the rooms' objects of  || x0_hat_theta(x_t, t) - x_0* ||^2
+    loss = mean over the adapted features of the rooms' objects of  || x0_hat_theta(x_t, t) - (x0_hat_old + dx_0) ||^2
 
-It is the policy-improvement step of expert iteration (RAFT's reward-ranked fine-tuning, with the ranking replaced
-by the reward's own descent): the policy regresses onto its own samples, improved. On the states it visited, not on
-fresh noise of a pretraining loss: the scene's noise is then the rollout's own, and the loss's gradient is the
-room's move, not the denoising error of a random draw (a first run with that loss, on the living-room prior, had not
-moved Col_obj in 10 epochs).
+with x0_hat_old the policy's prediction before the epoch's update. It is the policy-improvement step of expert
+iteration (RAFT's reward-ranked fine-tuning, with the ranking replaced by the reward's own descent): the policy
+regresses onto its own samples, improved. The target is its own prediction moved, not the room x_0* itself: at
+t = 150 the room the chain will end in still differs from x0_hat by the noise the later steps add (a mean square of
+0.05 per translation feature on the living-room prior), which swamped the move; regressed onto x_0* itself, the
+adapter diverged at learning rate 1e-3 and stood still at 1e-4 (docs/results/stage1_living_dining.md).
 
 Why: the physics gradient moves x0_hat of the last denoising steps one gradient step per update; on the living-room
 prior its adapters lowered the penalty but not Col_obj (49.1% -> 46-49%), while descent on the prior's own rooms
@@ -92,8 +93,8 @@ class DescentImitation(PhysicsGradient):
                              "physics-gradient or ddpo")
 
     def targets(self, x0: torch.Tensor, floors) -> tuple[torch.Tensor, dict[str, float]]:
-        """The rooms ``x0`` (B, N, 8 + K) with their objects moved down the penalty (module doc), and the penalty's
-        mean before and after."""
+        """The move dx_0 (B, N, 8 + K) in model features that takes the rooms ``x0``'s objects down the penalty
+        (module doc; zero but for the translations' x and z), and the penalty's mean before and after."""
         cfg, stats = self.config, self.venv.stats
         spec = stats.spec
         extents = floor_half_extents(floors)
@@ -103,11 +104,12 @@ class DescentImitation(PhysicsGradient):
         moved = descend_layouts(trans, half, yaws, labels, spec, floors, cfg.descent_steps, cfg.reach_weight,
                                 **weights)
         lo, hi = translation_scale(stats, x0, extents, half, yaws)
-        target = x0.clone()  # the translation features that decode to the moved positions (decoding clamps them)
-        target[..., 0:3] = x0[..., 0:3].clamp(-1, 1) + 2 * (moved - trans) / (hi - lo)
+        move = torch.zeros_like(x0)
+        now = x0[..., 0:3].clamp(-1, 1)  # decoding is linear in the translation features inside [-1, 1]
+        move[..., 0:3] = (now + 2 * (moved - trans) / (hi - lo)).clamp(-1, 1) - now
         penalty = {name: float(layout_penalty(t, half, yaws, labels, spec, floors, **weights).mean())
                    for name, t in (("before", trans), ("after", moved))}
-        return target, {"physics": penalty["before"], "physics_descended": penalty["after"]}
+        return move, {"physics": penalty["before"], "physics_descended": penalty["after"]}
 
     def train(self, rollout: TensorDict) -> dict[str, float]:
         cfg, venv, policy = self.config, self.venv, self.policy
@@ -115,23 +117,29 @@ class DescentImitation(PhysicsGradient):
         floors = [venv.floors[int(i)] for i in last["floor_index"]]
         given = "classes" in last.keys()
         x0 = policy.prior.with_clean_classes(last["action"], last["classes"]) if given else last["action"]
-        target, info = self.targets(x0, floors)
+        move, info = self.targets(x0, floors)
         keep = policy.reference_features(policy.adapter)
-        adapted = torch.ones(target.shape[-1], dtype=torch.bool) if keep is None else ~keep
-        weight = ((target[..., 8:].argmax(-1) != venv.stats.spec.empty_index)[..., None] & adapted).float()
-        steps = self.stochastic_steps()[-cfg.gradient_steps:]
-        losses = []
+        adapted = torch.ones(move.shape[-1], dtype=torch.bool) if keep is None else ~keep
+        weight = ((x0[..., 8:].argmax(-1) != venv.stats.spec.empty_index)[..., None] & adapted).float()
+        info["move_square"] = float((move.square() * weight).sum() / weight.sum().clamp_min(1))
+        states = rollout[:, -cfg.gradient_steps:].reshape(-1).to(self.device)  # the states the policy visited
+
+        def predict(rows: torch.Tensor) -> torch.Tensor:  # as the chain clips it, its gradient as if unclipped
+            mb = states[rows]
+            raw = policy.predict_x0(mb["x_t"], mb["t"], mb["floor"], mb["classes"] if given else None, clip=False)
+            return raw + (raw.clamp(-1, 1) - raw).detach()  # an object against a wall can still be pulled off it
+
         policy.model.eval()
+        with torch.no_grad():  # the targets: the predictions before this update, moved
+            target = torch.cat([predict(rows) for rows in torch.arange(len(states)).split(cfg.minibatch_size)])
+        target = target + move.to(self.device).repeat_interleave(cfg.gradient_steps, 0)
+        weight = weight.to(self.device).repeat_interleave(cfg.gradient_steps, 0)
+        losses = []
         for _ in range(cfg.num_inner_epochs):
-            perm = torch.randperm(len(target), generator=self.generator)
-            for start in range(0, len(target), cfg.minibatch_size):
-                rows = perm[start:start + cfg.minibatch_size]
-                mb = rollout[rows][:, steps].to(self.device)  # the states the policy visited, (b, k)
-                x0_hat = policy.predict_x0(mb["x_t"].flatten(0, 1), mb["t"].flatten(0, 1), mb["floor"].flatten(0, 1),
-                                           mb["classes"].flatten(0, 1) if given else None)
-                x0_star = target[rows].to(self.device).repeat_interleave(len(steps), 0)
-                w = weight[rows].to(self.device).repeat_interleave(len(steps), 0)
-                loss = ((x0_hat - x0_star).square() * w).sum() / w.sum().clamp_min(1)
+            perm = torch.randperm(len(states), generator=self.generator)
+            for rows in perm.split(cfg.minibatch_size * cfg.gradient_steps):
+                w = weight[rows]
+                loss = ((predict(rows) - target[rows]).square() * w).sum() / w.sum().clamp_min(1)
                 self.optimizer.zero_grad(set_to_none=True)
                 loss.backward()
                 distributed.average_gradients(policy.trainable_parameters())

@@ -305,10 +305,15 @@ class DiffusionPolicy(nn.Module):
         # passing prev_sample makes step() compute the Gaussian without drawing from it
         return self.schedule.step(eps, t, x_t, eta=self.eta, prev_sample=x_t, prev_timestep=t_prev)
 
-    def predict_x0(self, x_t, t, floor, classes=None) -> torch.Tensor:
+    def predict_x0(self, x_t, t, floor, classes=None, clip: bool = True) -> torch.Tensor:
         """x0_hat_theta(x_t): the clean scene the step predicts (differentiable in the adapter); with the rooms'
-        given ``classes`` (see :meth:`eps`) its class part is theirs."""
-        x0 = self._step(x_t, t, floor, classes).pred_original_sample
+        given ``classes`` (see :meth:`eps`) its class part is theirs. ``clip=False``: before the DDIM step clips it
+        to [-1, 1], where a feature at its bound (in the room frame an object against a wall) keeps its gradient."""
+        if clip:
+            x0 = self._step(x_t, t, floor, classes).pred_original_sample
+        else:
+            t = torch.as_tensor(t, device=x_t.device).long().reshape(-1).expand(x_t.shape[0])
+            x0 = self.schedule.predict_x0(x_t, t, self.eps(x_t, t, floor, classes=classes))
         return x0 if classes is None else self.prior.with_clean_classes(x0, classes)
 
     def log_prob(self, x_t, t, floor, x_prev, classes=None) -> torch.Tensor:
