@@ -2,28 +2,34 @@
 on ``--rooms`` training floors (the config's floor seed), each descended once (``agents/descent_imitation.py``'s
 targets, the config's penalty), then the adapter trained offline for ``--epochs`` passes over them on the one step
 whose prediction is the room sampled (t = 0): x0_hat(x_t) regressed onto the prior's own x0_hat plus the descent's
-move. After each pass, on 64 other floors (seed 4242, the noise fixed): the penalty and Col_obj of the rooms sampled
+move. After each pass, on ``--other-floors`` other floors (seed 4242, the noise fixed): the penalty and Col_obj of the rooms sampled
 with the adapter and (first) without it.
 
     .venv/bin/python research/descent_offline.py experiments/ablations/stage1_livingroom_descent.yaml \
-        --rooms 8192 --epochs 8 [--save ADAPTER_DIR]
+        --rooms 16384 --epochs 10 --cache ROOMS.pt --out RUN [--init RUN --lr 0.003]
+    iarcs sample --room livingroom --checkpoint RUN ...
+
+``--cache`` keeps the descended rooms (made once, reused when the file exists); ``--out`` writes a run folder
+that ``iarcs sample --checkpoint`` reads; ``--init`` starts from such a folder's adapter.
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import sys
 import time
 from pathlib import Path
 
 import torch
+import yaml
 from tqdm import tqdm
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from agents.denoiser import centre_floor  # noqa: E402
 from agents.physics_gradient import layout_penalty, penalty_weights  # noqa: E402
-from agents.train import build, load_train_config  # noqa: E402
+from agents.train import ADAPTERS_DIR, build, load_train_config  # noqa: E402
 from iarcs_env.datasets.procedural import generate_layouts  # noqa: E402
 from iarcs_env.env import default_floors  # noqa: E402
 from iarcs_env.metrics import evaluate_layouts  # noqa: E402
@@ -38,7 +44,11 @@ def main(argv=None) -> None:
     parser.add_argument("--rooms", type=int, default=8192)
     parser.add_argument("--epochs", type=int, default=8)
     parser.add_argument("--batch", type=int, default=64)
-    parser.add_argument("--save", help="write the trained adapter (peft) to this folder")
+    parser.add_argument("--other-floors", type=int, default=64, help="held-out floors sampled after each pass")
+    parser.add_argument("--lr", type=float, help="learning rate (default: the config's)")
+    parser.add_argument("--cache", help="a file for the descended rooms: written once, then read")
+    parser.add_argument("--init", help="a run folder (of --out) whose adapter to start from")
+    parser.add_argument("--out", help="write a run folder with the trained adapter")
     args = parser.parse_args(argv)
     cfg = load_train_config(args.config)
     algo, policy, _ = build(cfg)
@@ -46,30 +56,20 @@ def main(argv=None) -> None:
     weights = penalty_weights(algo.config, algo.contact())
     generator = torch.Generator().manual_seed(cfg.seed)
 
-    # the prior's rooms, the state of their last step and the descent's move
-    floors = [lay.centred().floor for lay in generate_layouts(cfg.room, args.rooms, seed=cfg.floor_seed)]
-    inputs, conds, targets, penalties = [], [], [], []
-    start = time.time()
-    for i in tqdm(range(0, len(floors), CHUNK), desc="prior rooms, descended"):
-        chunk = floors[i:i + CHUNK]
-        with torch.no_grad(), policy.base_policy():
-            x0, trajectory = prior.sample_features(chunk, cfg.num_steps, cfg.eta, generator, eps_fn=policy.eps,
-                                                   return_trajectory=True)
-        move, info = algo.targets(x0, chunk)
-        inputs.append(trajectory["states"][-2])
-        conds.append(prior.floor_condition(chunk))
-        targets.append(x0.clamp(-1, 1) + move)
-        penalties.append((info["physics"], info["physics_descended"]))
-    x_in, cond, target = torch.cat(inputs), torch.cat(conds), torch.cat(targets)
-    before = sum(p[0] for p in penalties) / len(penalties)
-    after = sum(p[1] for p in penalties) / len(penalties)
-    print(f"{len(floors)} rooms in {time.time() - start:.0f} s: penalty {before:.3f}, descended {after:.3f}")
+    if args.init:
+        policy.load_adapter(Path(args.init) / ADAPTERS_DIR / cfg.adapter, cfg.adapter)
+    if args.cache and Path(args.cache).exists():
+        x_in, cond, target = torch.load(args.cache).values()
+    else:
+        x_in, cond, target = descended_rooms(cfg, algo, policy, args.rooms, generator)
+        if args.cache:
+            torch.save({"x_in": x_in, "cond": cond, "target": target}, args.cache)
     keep = policy.reference_features(policy.adapter)
     adapted = torch.ones(target.shape[-1], dtype=torch.bool) if keep is None else ~keep
     weight = ((target[..., 8:].argmax(-1) != stats.spec.empty_index)[..., None] & adapted).float()
     t0 = torch.zeros(len(x_in), dtype=torch.long)
 
-    other = [centre_floor(f) for f in default_floors(cfg.room, count=64, seed=4242)]
+    other = [centre_floor(f) for f in default_floors(cfg.room, count=args.other_floors, seed=4242)]
 
     def on_other_floors() -> str:
         with torch.no_grad():
@@ -81,8 +81,8 @@ def main(argv=None) -> None:
         return f"penalty {pen:.3f}, Col_obj {col:.1%}"
 
     with policy.base_policy():
-        print(f"64 other floors, the prior: {on_other_floors()}")
-    optimizer = torch.optim.Adam(policy.trainable_parameters(), lr=algo.config.learning_rate)
+        print(f"{len(other)} other floors, the prior: {on_other_floors()}")
+    optimizer = torch.optim.Adam(policy.trainable_parameters(), lr=args.lr or algo.config.learning_rate)
     policy.model.eval()
     for epoch in range(1, args.epochs + 1):
         losses = []
@@ -96,11 +96,35 @@ def main(argv=None) -> None:
             torch.nn.utils.clip_grad_norm_(policy.trainable_parameters(), algo.config.max_grad_norm)
             optimizer.step()
             losses.append(loss.item())
-        print(f"epoch {epoch}: loss {sum(losses) / len(losses):.5f}; 64 other floors, the adapter: "
+        print(f"epoch {epoch}: loss {sum(losses) / len(losses):.5f}; {len(other)} other floors, the adapter: "
               f"{on_other_floors()}", flush=True)
-    if args.save:
-        policy.save_adapter(args.save)
-        print(f"adapter: {args.save}")
+        if args.out:  # a run folder iarcs sample --checkpoint reads, after every pass
+            Path(args.out).mkdir(parents=True, exist_ok=True)
+            (Path(args.out) / "config.yaml").write_text(yaml.safe_dump(dataclasses.asdict(cfg), sort_keys=False))
+            policy.save_adapter(Path(args.out) / ADAPTERS_DIR)
+
+
+def descended_rooms(cfg, algo, policy, count: int, generator: torch.Generator):
+    """The prior's rooms on ``count`` training floors: the state x_t of each chain's last step, the floor condition,
+    and the target of the last step's prediction (the room, clipped as decoding does, plus the descent's move)."""
+    prior = policy.prior
+    floors = [lay.centred().floor for lay in generate_layouts(cfg.room, count, seed=cfg.floor_seed)]
+    inputs, conds, targets, penalties = [], [], [], []
+    start = time.time()
+    for i in tqdm(range(0, len(floors), CHUNK), desc="prior rooms, descended"):
+        chunk = floors[i:i + CHUNK]
+        with torch.no_grad(), policy.base_policy():
+            x0, trajectory = prior.sample_features(chunk, cfg.num_steps, cfg.eta, generator, eps_fn=policy.eps,
+                                                   return_trajectory=True)
+        move, info = algo.targets(x0, chunk)
+        inputs.append(trajectory["states"][-2])
+        conds.append(prior.floor_condition(chunk))
+        targets.append(x0.clamp(-1, 1) + move)
+        penalties.append((info["physics"], info["physics_descended"]))
+    before = sum(p[0] for p in penalties) / len(penalties)
+    after = sum(p[1] for p in penalties) / len(penalties)
+    print(f"{len(floors)} rooms in {time.time() - start:.0f} s: penalty {before:.3f}, descended {after:.3f}")
+    return torch.cat(inputs), torch.cat(conds), torch.cat(targets)
 
 
 if __name__ == "__main__":

@@ -371,3 +371,26 @@ def test_seat_desk_pulls_says_where_a_seat_left_its_desk():
     assert went(make_layout([desk, box("chair", 2.8, 0.8, 0.25, 0.25)])) == "sideways"  # 0.8 m > 0.6 + 0.1
     assert went(make_layout([desk, box("chair", 2.0, 2.0, 0.25, 0.25)])) == "too far in front"
     assert went(make_layout([desk, box("double_bed", 1.0, 2.0, 0.9, 0.9)])) == "no desk or no seat"
+
+
+def test_descent_offline_caches_its_rooms_and_writes_a_run_folder_that_samples(tmp_path, capsys):
+    from conftest import perturb_zero_init, write_tiny_train_config
+    from agents.train import load_trained_policy
+
+    config = write_tiny_train_config(tmp_path, algorithm="descent-imitation",
+                                     ddpo={"samples_per_floor": 1, "minibatch_size": 4, "descent_steps": 20,
+                                           "overlap_measure": "depth"})
+    perturb_zero_init(ScenePrior.load(tmp_path / "prior.pt"), 0).save(tmp_path / "prior.pt")  # gradients flow
+    args = [str(config), "--rooms", "6", "--epochs", "1", "--batch", "4", "--other-floors", "4",
+            "--cache", str(tmp_path / "rooms.pt"), "--out", str(tmp_path / "offline")]
+    load("descent_offline").main(args)
+    first = capsys.readouterr().out
+    rooms = torch.load(tmp_path / "rooms.pt")
+    assert len(rooms["x_in"]) == len(rooms["cond"]) == len(rooms["target"]) == 6
+    assert rooms["target"].shape == rooms["x_in"].shape and rooms["target"].abs().max() <= 1
+    assert "6 rooms in" in first and "epoch 1: loss" in first and "the prior: penalty" in first
+    load("descent_offline").main(args + ["--init", str(tmp_path / "offline")])
+    assert "rooms in" not in capsys.readouterr().out  # read from the cache
+    policy, cfg = load_trained_policy(tmp_path / "offline")
+    assert cfg.algorithm == "descent-imitation"
+    assert any(p.abs().sum() > 0 for n, p in policy.model.named_parameters() if "lora_B" in n)
