@@ -27,6 +27,7 @@ from tqdm import tqdm
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from agents import policy as policy_module  # noqa: E402
 from agents.denoiser import centre_floor  # noqa: E402
 from agents.physics_gradient import layout_penalty, penalty_weights  # noqa: E402
 from agents.train import ADAPTERS_DIR, build, load_train_config  # noqa: E402
@@ -49,8 +50,12 @@ def main(argv=None) -> None:
     parser.add_argument("--cache", help="a file for the descended rooms: written once, then read")
     parser.add_argument("--init", help="a run folder (of --out) whose adapter to start from")
     parser.add_argument("--out", help="write a run folder with the trained adapter")
+    parser.add_argument("--lora-targets", help="a regular expression of the layers the LoRA adapts (peft's "
+                        "target_modules), in place of the attention projections (agents.policy.LORA_TARGETS)")
     args = parser.parse_args(argv)
     cfg = load_train_config(args.config)
+    if args.lora_targets:
+        policy_module.LORA_TARGETS = args.lora_targets
     algo, policy, _ = build(cfg)
     prior, stats = policy.prior, policy.prior.stats
     weights = penalty_weights(algo.config, algo.contact())
