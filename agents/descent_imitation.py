@@ -19,8 +19,9 @@ adapter diverged at learning rate 1e-3 and stood still at 1e-4 (docs/results/sta
 Why: the physics gradient moves x0_hat of the last denoising steps one gradient step per update; on the living-room
 prior its adapters lowered the penalty but not Col_obj (49.1% -> 46-49%), while descent on the prior's own rooms
 reaches a third fewer colliding objects with more of them reachable (``research/layout_descent.py``;
-docs/results/stage1_living_dining.md). Measured there: this adapter, 11 epochs on that prior, learned the move
-common to the rooms (furniture towards the walls) and not each room's own; not shipped. The walkway term
+docs/results/stage1_living_dining.md). Measured there: this adapter fits the moves of the rooms it is shown but
+carries them over to new rooms only after thousands of them (``research/descent_fit.py``,
+``research/descent_offline.py``); not shipped. The walkway term
 (``reach_weight``) charges the clearance at each object's path bottleneck (:func:`iarcs_env.clearance.reach_points`),
 searched for again every :data:`REACH_REFRESH` steps.
 """

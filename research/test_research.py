@@ -394,3 +394,18 @@ def test_descent_offline_caches_its_rooms_and_writes_a_run_folder_that_samples(t
     policy, cfg = load_trained_policy(tmp_path / "offline")
     assert cfg.algorithm == "descent-imitation"
     assert any(p.abs().sum() > 0 for n, p in policy.model.named_parameters() if "lora_B" in n)
+
+
+def test_descent_fit_takes_the_batch_towards_its_moves_and_samples_other_floors(tmp_path, capsys):
+    from conftest import perturb_zero_init, write_tiny_train_config
+
+    config = write_tiny_train_config(tmp_path, algorithm="descent-imitation",
+                                     ddpo={"samples_per_floor": 1, "minibatch_size": 4, "descent_steps": 20,
+                                           "overlap_measure": "depth", "learning_rate": 0.01})
+    perturb_zero_init(ScenePrior.load(tmp_path / "prior.pt"), 0).save(tmp_path / "prior.pt")
+    load("descent_fit").main([str(config), "--updates", "10", "--floors", "4"])
+    lines = capsys.readouterr().out.splitlines()
+    before = float(lines[0].rsplit("miss ", 1)[1])
+    after = float(lines[1].split("miss ", 1)[1].split(",")[0])
+    assert after < before
+    assert "4 other floors, with the adapter: penalty" in lines[2] and "the prior: penalty" in lines[3]
