@@ -70,7 +70,8 @@ def main(argv=None) -> None:
           f"final prediction's miss {miss(before):.3f}")
     algo.train(rollout)
     after = final_prediction()
-    print(f"after {args.updates} passes: miss {miss(after):.3f}, final prediction's penalty {penalty(after, floors):.3f}")
+    print(f"after {args.updates} passes: miss {miss(after):.3f}, "
+          f"final prediction's penalty {penalty(after, floors):.3f}")
     print(f"{args.floors} other floors, with the adapter: {on_other_floors()}")
     with policy.base_policy():
         print(f"{args.floors} other floors, the prior: {on_other_floors()}")

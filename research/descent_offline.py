@@ -2,8 +2,8 @@
 on ``--rooms`` training floors (the config's floor seed), each descended once (``agents/descent_imitation.py``'s
 targets, the config's penalty), then the adapter trained offline for ``--epochs`` passes over them on the one step
 whose prediction is the room sampled (t = 0): x0_hat(x_t) regressed onto the prior's own x0_hat plus the descent's
-move. After each pass, on ``--other-floors`` other floors (seed 4242, the noise fixed): the penalty and Col_obj of the rooms sampled
-with the adapter and (first) without it.
+move. After each pass, on ``--other-floors`` other floors (seed 4242, the noise fixed): the penalty and Col_obj of
+the rooms sampled with the adapter and (first) without it.
 
     .venv/bin/python research/descent_offline.py experiments/ablations/stage1_livingroom_descent.yaml \
         --rooms 16384 --epochs 10 --cache ROOMS.pt --out RUN [--init RUN --lr 0.003]
