@@ -9,7 +9,8 @@ the rooms sampled with the adapter and (first) without it.
         --rooms 16384 --epochs 10 --cache ROOMS.pt --out RUN [--init RUN --lr 0.003]
     iarcs sample --room livingroom --checkpoint RUN ...
 
-``--cache`` keeps the descended rooms (made once, reused when the file exists); ``--out`` writes a run folder
+``--cache`` keeps the descended rooms (made once, reused when the file exists; several files: their rooms together,
+e.g. from configs of other floor seeds); ``--out`` writes a run folder
 that ``iarcs sample --checkpoint`` reads; ``--init`` starts from such a folder's adapter.
 """
 
@@ -47,7 +48,9 @@ def main(argv=None) -> None:
     parser.add_argument("--batch", type=int, default=64)
     parser.add_argument("--other-floors", type=int, default=64, help="held-out floors sampled after each pass")
     parser.add_argument("--lr", type=float, help="learning rate (default: the config's)")
-    parser.add_argument("--cache", help="a file for the descended rooms: written once, then read")
+    parser.add_argument("--cache", action="append", default=[],
+                        help="a file for the descended rooms: written once, then read; given more than once, the "
+                             "files' rooms together (each written before by a run of its own)")
     parser.add_argument("--init", help="a run folder (of --out) whose adapter to start from")
     parser.add_argument("--out", help="write a run folder with the trained adapter")
     parser.add_argument("--lora-targets", help="a regular expression of the layers the LoRA adapts (peft's "
@@ -63,12 +66,15 @@ def main(argv=None) -> None:
 
     if args.init:
         policy.load_adapter(Path(args.init) / ADAPTERS_DIR / cfg.adapter, cfg.adapter)
-    if args.cache and Path(args.cache).exists():
-        x_in, cond, target = torch.load(args.cache).values()
+    if args.cache and all(Path(c).exists() for c in args.cache):
+        x_in, cond, target = (torch.cat(parts) for parts in zip(*(torch.load(c).values() for c in args.cache)))
+    elif len(args.cache) > 1:
+        raise SystemExit(f"missing: {', '.join(c for c in args.cache if not Path(c).exists())} (make each file with "
+                         f"a run of its own)")
     else:
         x_in, cond, target = descended_rooms(cfg, algo, policy, args.rooms, generator)
         if args.cache:
-            torch.save({"x_in": x_in, "cond": cond, "target": target}, args.cache)
+            torch.save({"x_in": x_in, "cond": cond, "target": target}, args.cache[0])
     keep = policy.reference_features(policy.adapter)
     adapted = torch.ones(target.shape[-1], dtype=torch.bool) if keep is None else ~keep
     weight = ((target[..., 8:].argmax(-1) != stats.spec.empty_index)[..., None] & adapted).float()
