@@ -125,20 +125,22 @@ class DescentImitation(PhysicsGradient):
         info["move_square"] = float((move.square() * weight).sum() / weight.sum().clamp_min(1))
         states = rollout[:, -cfg.gradient_steps:].reshape(-1).to(self.device)  # the states the policy visited
 
-        def predict(rows: torch.Tensor) -> torch.Tensor:  # as the chain clips it, its gradient as if unclipped
+        batch = cfg.minibatch_size * cfg.gradient_steps
+
+        def predict(rows: torch.Tensor) -> torch.Tensor:  # an object against a wall can still be pulled off it
             mb = states[rows]
-            raw = policy.predict_x0(mb["x_t"], mb["t"], mb["floor"], mb["classes"] if given else None, clip=False)
-            return raw + (raw.clamp(-1, 1) - raw).detach()  # an object against a wall can still be pulled off it
+            return policy.predict_x0(mb["x_t"], mb["t"], mb["floor"], mb["classes"] if given else None,
+                                     straight_through=True)
 
         policy.model.eval()
         with torch.no_grad():  # the targets: the predictions before this update, moved
-            target = torch.cat([predict(rows) for rows in torch.arange(len(states)).split(cfg.minibatch_size)])
+            target = torch.cat([predict(rows) for rows in torch.arange(len(states)).split(batch)])
         target = target + move.to(self.device).repeat_interleave(cfg.gradient_steps, 0)
         weight = weight.to(self.device).repeat_interleave(cfg.gradient_steps, 0)
         losses = []
         for _ in range(cfg.num_inner_epochs):
             perm = torch.randperm(len(states), generator=self.generator)
-            for rows in perm.split(cfg.minibatch_size * cfg.gradient_steps):
+            for rows in perm.split(batch):
                 w = weight[rows]
                 loss = ((predict(rows) - target[rows]).square() * w).sum() / w.sum().clamp_min(1)
                 self.optimizer.zero_grad(set_to_none=True)

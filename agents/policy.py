@@ -305,15 +305,18 @@ class DiffusionPolicy(nn.Module):
         # passing prev_sample makes step() compute the Gaussian without drawing from it
         return self.schedule.step(eps, t, x_t, eta=self.eta, prev_sample=x_t, prev_timestep=t_prev)
 
-    def predict_x0(self, x_t, t, floor, classes=None, clip: bool = True) -> torch.Tensor:
+    def predict_x0(self, x_t, t, floor, classes=None, straight_through: bool = False) -> torch.Tensor:
         """x0_hat_theta(x_t): the clean scene the step predicts (differentiable in the adapter); with the rooms'
-        given ``classes`` (see :meth:`eps`) its class part is theirs. ``clip=False``: before the DDIM step clips it
-        to [-1, 1], where a feature at its bound (in the room frame an object against a wall) keeps its gradient."""
-        if clip:
-            x0 = self._step(x_t, t, floor, classes).pred_original_sample
-        else:
+        given ``classes`` (see :meth:`eps`) its class part is theirs. The DDIM step clips it to [-1, 1], where a
+        feature at its bound (in the room frame an object against a wall) has no gradient; ``straight_through``: the
+        clipped value with the gradient of the unclipped one."""
+        if straight_through:  # one forward pass, clipped as the DDIM step clips
             t = torch.as_tensor(t, device=x_t.device).long().reshape(-1).expand(x_t.shape[0])
-            x0 = self.schedule.predict_x0(x_t, t, self.eps(x_t, t, floor, classes=classes))
+            raw = self.schedule.predict_x0(x_t, t, self.eps(x_t, t, floor, classes=classes))
+            bound = self.schedule.config.clip_sample_range if self.schedule.config.clip_sample else float("inf")
+            x0 = raw + (raw.clamp(-bound, bound) - raw).detach()
+        else:
+            x0 = self._step(x_t, t, floor, classes).pred_original_sample
         return x0 if classes is None else self.prior.with_clean_classes(x0, classes)
 
     def log_prob(self, x_t, t, floor, x_prev, classes=None) -> torch.Tensor:

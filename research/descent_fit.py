@@ -17,13 +17,11 @@ from pathlib import Path
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+sys.path.insert(0, str(Path(__file__).resolve().parent))  # its sibling script
 
-from agents.denoiser import centre_floor  # noqa: E402
-from agents.physics_gradient import layout_penalty, penalty_weights  # noqa: E402
+from agents.physics_gradient import penalty_weights, physics_penalty  # noqa: E402
 from agents.train import build, load_train_config  # noqa: E402
-from iarcs_env.env import default_floors  # noqa: E402
-from iarcs_env.metrics import evaluate_layouts  # noqa: E402
-from iarcs_env.scene import SceneBatch, decode_geometry, floor_half_extents  # noqa: E402
+from descent_offline import held_out_floors, sampled_on  # noqa: E402
 
 
 def main(argv=None) -> None:
@@ -41,19 +39,7 @@ def main(argv=None) -> None:
     algo, policy, _ = build(cfg)
     stats, weights = algo.venv.stats, penalty_weights(algo.config, algo.contact())
 
-    def penalty(x0: torch.Tensor, floors) -> float:
-        trans, half, yaws = decode_geometry(x0, stats, floor_half_extents(floors))
-        return float(layout_penalty(trans, half, yaws, x0[..., 8:].argmax(-1), stats.spec, floors, **weights).mean())
-
-    other = [centre_floor(f) for f in default_floors(cfg.room, count=args.floors, seed=4242)]
-
-    def on_other_floors() -> str:
-        with torch.no_grad():
-            x0 = policy.prior.sample_features(other, cfg.num_steps, cfg.eta, torch.Generator().manual_seed(0),
-                                              eps_fn=policy.eps)
-        col = evaluate_layouts(SceneBatch.decode(x0, stats, other).to_layouts())["Col_obj"]
-        return f"penalty {penalty(x0, other):.3f}, Col_obj {col:.1%}"
-
+    other = held_out_floors(cfg.room, args.floors)
     rollout = algo.collect_rollouts()
     last = rollout[:, -1]
     floors = [algo.venv.floors[int(i)] for i in last["floor_index"]]
@@ -71,10 +57,10 @@ def main(argv=None) -> None:
     algo.train(rollout)
     after = final_prediction()
     print(f"after {args.updates} passes: miss {miss(after):.3f}, "
-          f"final prediction's penalty {penalty(after, floors):.3f}")
-    print(f"{args.floors} other floors, with the adapter: {on_other_floors()}")
+          f"final prediction's penalty {float(physics_penalty(after, stats, floors, **weights).mean()):.3f}")
+    print(f"{args.floors} other floors, with the adapter: {sampled_on(policy, cfg, other, weights)}")
     with policy.base_policy():
-        print(f"{args.floors} other floors, the prior: {on_other_floors()}")
+        print(f"{args.floors} other floors, the prior: {sampled_on(policy, cfg, other, weights)}")
 
 
 if __name__ == "__main__":

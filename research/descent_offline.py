@@ -30,12 +30,12 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from agents import policy as policy_module  # noqa: E402
 from agents.denoiser import centre_floor  # noqa: E402
-from agents.physics_gradient import layout_penalty, penalty_weights  # noqa: E402
+from agents.physics_gradient import penalty_weights, physics_penalty  # noqa: E402
 from agents.train import ADAPTERS_DIR, build, load_train_config  # noqa: E402
 from iarcs_env.datasets.procedural import generate_layouts  # noqa: E402
 from iarcs_env.env import default_floors  # noqa: E402
 from iarcs_env.metrics import evaluate_layouts  # noqa: E402
-from iarcs_env.scene import SceneBatch, decode_geometry, floor_half_extents  # noqa: E402
+from iarcs_env.scene import SceneBatch  # noqa: E402
 
 CHUNK = 128
 
@@ -60,7 +60,7 @@ def main(argv=None) -> None:
     if args.lora_targets:
         policy_module.LORA_TARGETS = args.lora_targets
     algo, policy, _ = build(cfg)
-    prior, stats = policy.prior, policy.prior.stats
+    stats = policy.prior.stats
     weights = penalty_weights(algo.config, algo.contact())
     generator = torch.Generator().manual_seed(cfg.seed)
 
@@ -80,26 +80,15 @@ def main(argv=None) -> None:
     weight = ((target[..., 8:].argmax(-1) != stats.spec.empty_index)[..., None] & adapted).float()
     t0 = torch.zeros(len(x_in), dtype=torch.long)
 
-    other = [centre_floor(f) for f in default_floors(cfg.room, count=args.other_floors, seed=4242)]
-
-    def on_other_floors() -> str:
-        with torch.no_grad():
-            x0 = prior.sample_features(other, cfg.num_steps, cfg.eta, torch.Generator().manual_seed(0),
-                                       eps_fn=policy.eps)
-        trans, half, yaws = decode_geometry(x0, stats, floor_half_extents(other))
-        pen = float(layout_penalty(trans, half, yaws, x0[..., 8:].argmax(-1), stats.spec, other, **weights).mean())
-        col = evaluate_layouts(SceneBatch.decode(x0, stats, other).to_layouts())["Col_obj"]
-        return f"penalty {pen:.3f}, Col_obj {col:.1%}"
-
+    other = held_out_floors(cfg.room, args.other_floors)
     with policy.base_policy():
-        print(f"{len(other)} other floors, the prior: {on_other_floors()}")
+        print(f"{len(other)} other floors, the prior: {sampled_on(policy, cfg, other, weights)}")
     optimizer = torch.optim.Adam(policy.trainable_parameters(), lr=args.lr or algo.config.learning_rate)
     policy.model.eval()
     for epoch in range(1, args.epochs + 1):
         losses = []
         for rows in torch.randperm(len(x_in), generator=generator).split(args.batch):
-            raw = policy.predict_x0(x_in[rows], t0[rows], cond[rows], clip=False)
-            pred = raw + (raw.clamp(-1, 1) - raw).detach()
+            pred = policy.predict_x0(x_in[rows], t0[rows], cond[rows], straight_through=True)
             w = weight[rows]
             loss = ((pred - target[rows]).square() * w).sum() / w.sum().clamp_min(1)
             optimizer.zero_grad(set_to_none=True)
@@ -108,11 +97,27 @@ def main(argv=None) -> None:
             optimizer.step()
             losses.append(loss.item())
         print(f"epoch {epoch}: loss {sum(losses) / len(losses):.5f}; {len(other)} other floors, the adapter: "
-              f"{on_other_floors()}", flush=True)
+              f"{sampled_on(policy, cfg, other, weights)}", flush=True)
         if args.out:  # a run folder iarcs sample --checkpoint reads, after every pass
             Path(args.out).mkdir(parents=True, exist_ok=True)
             (Path(args.out) / "config.yaml").write_text(yaml.safe_dump(dataclasses.asdict(cfg), sort_keys=False))
             policy.save_adapter(Path(args.out) / ADAPTERS_DIR)
+
+
+def held_out_floors(room: str, count: int) -> list:
+    """``count`` procedural floors of seed 4242, which neither pretraining (seed 0) nor RL (1000) sees."""
+    return [centre_floor(f) for f in default_floors(room, count=count, seed=4242)]
+
+
+def sampled_on(policy, cfg, floors, weights: dict) -> str:
+    """The penalty (``weights``: :func:`~agents.physics_gradient.penalty_weights`) and Col_obj of the rooms the
+    policy samples on ``floors``, the noise fixed (seed 0)."""
+    with torch.no_grad():
+        x0 = policy.prior.sample_features(floors, cfg.num_steps, cfg.eta, torch.Generator().manual_seed(0),
+                                          eps_fn=policy.eps)
+    penalty = float(physics_penalty(x0, policy.prior.stats, floors, **weights).mean())
+    col = evaluate_layouts(SceneBatch.decode(x0, policy.prior.stats, floors).to_layouts())["Col_obj"]
+    return f"penalty {penalty:.3f}, Col_obj {col:.1%}"
 
 
 def descended_rooms(cfg, algo, policy, count: int, generator: torch.Generator):

@@ -343,6 +343,8 @@ def test_descent_imitation_moves_its_predictions_by_the_descent_of_its_rooms_and
 
     frozen = {k: v.clone() for k, v in model.policy.model.state_dict().items() if "lora_" not in k}
     before = final_prediction()
+    through = model.policy.predict_x0(last["x_t"], last["t"], last["floor"], straight_through=True)
+    assert torch.allclose(through.detach(), before, atol=1e-5)  # the clipped value, the unclipped one's gradient
     stats = model.train(rollout)
     after = final_prediction()
     real = (last["action"][..., 8:].argmax(-1) != model.venv.stats.spec.empty_index)[..., None]
