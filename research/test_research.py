@@ -396,6 +396,26 @@ def test_descent_offline_caches_its_rooms_and_writes_a_run_folder_that_samples(t
     assert any(p.abs().sum() > 0 for n, p in policy.model.named_parameters() if "lora_B" in n)
 
 
+def test_descent_probe_scores_the_adapter_and_fits_a_fresh_network_to_the_moves(tmp_path, capsys):
+    from conftest import perturb_zero_init, write_tiny_train_config
+
+    config = write_tiny_train_config(tmp_path, algorithm="descent-imitation",
+                                     ddpo={"samples_per_floor": 1, "minibatch_size": 4, "descent_steps": 20,
+                                           "overlap_measure": "depth"})
+    perturb_zero_init(ScenePrior.load(tmp_path / "prior.pt"), 0).save(tmp_path / "prior.pt")
+    rooms, run = str(tmp_path / "rooms.pt"), str(tmp_path / "offline")
+    load("descent_offline").main([str(config), "--rooms", "6", "--epochs", "1", "--batch", "4", "--other-floors",
+                                  "2", "--cache", rooms, "--out", run])
+    capsys.readouterr()
+    load("descent_probe").main([str(config), "--cache", rooms, "--held-out", rooms, "--run", run,
+                                "--epochs", "20", "--batch", "3", "--lr", "0.003"])
+    lines = capsys.readouterr().out.splitlines()
+    assert lines[0].startswith("6 rooms to train on, 6 held out; the move's mean square")
+    assert lines[1].startswith(f"the adapter of {run}: explains")
+    shares = [float(line.split("explains ")[1].split("%")[0]) for line in lines[2:]]
+    assert len(shares) == 20 and shares[-1] > max(shares[0], 0.0)  # it learns the moves it is shown
+
+
 def test_descent_fit_takes_the_batch_towards_its_moves_and_samples_other_floors(tmp_path, capsys):
     from conftest import perturb_zero_init, write_tiny_train_config
 

@@ -1,0 +1,108 @@
+"""Can a network predict the descent's move from the room at all? The rooms of ``research/descent_offline.py``'s
+cache files: each room's last-step state x_t, the prior's prediction x0_hat from it, and the descent's move of that
+room. Scored on the rooms of ``--held-out`` (a cache file of other floors) by the share of the move's mean square
+they explain (1 - miss / move, over the objects present and the adapted features):
+
+- ``--run``: the adapter of a ``descent_offline.py --out`` run, whose move is its x0_hat minus the prior's;
+- the denoiser's own architecture trained from scratch on the ``--cache`` rooms (the run's) to output the move from
+  the clean room x0_hat (t = 0) and the floor, ``--epochs`` passes.
+
+The adapter explaining little where the fresh network explains much: the prior's features, not the rooms, limit
+what the adapter learns. Both explaining little: the move is not a function of the room that this network learns
+from these rooms.
+
+    .venv/bin/python research/descent_probe.py experiments/ablations/stage1_livingroom_descent.yaml \
+        --cache ROOMS.pt --held-out OTHER.pt --run RUN --lora-targets REGEX --epochs 10
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+import torch
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from agents import policy as policy_module  # noqa: E402
+from agents.denoiser import SceneDenoiser  # noqa: E402
+from agents.train import ADAPTERS_DIR, build, load_train_config  # noqa: E402
+
+
+def explained(pred: torch.Tensor, move: torch.Tensor, weight: torch.Tensor) -> float:
+    """1 - the weighted mean square of ``pred - move`` over that of ``move``."""
+    return 1.0 - float(((pred - move).square() * weight).sum() / (move.square() * weight).sum())
+
+
+def predictions(fn, x: torch.Tensor, cond: torch.Tensor, chunk: int = 256) -> torch.Tensor:
+    t0 = torch.zeros(chunk, dtype=torch.long)
+    with torch.no_grad():
+        return torch.cat([fn(x[i:i + chunk], t0[:len(x[i:i + chunk])], cond[i:i + chunk])
+                          for i in range(0, len(x), chunk)])
+
+
+def main(argv=None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("config", help="the descent-imitation config the cache files were made with")
+    parser.add_argument("--cache", action="append", required=True,
+                        help="a descent_offline.py cache file the run trained on (more than one: their rooms together)")
+    parser.add_argument("--held-out", required=True, help="a cache file of other floors")
+    parser.add_argument("--run", help="a descent_offline.py --out folder whose adapter to score")
+    parser.add_argument("--lora-targets", help="the run's --lora-targets")
+    parser.add_argument("--epochs", type=int, default=10)
+    parser.add_argument("--batch", type=int, default=64)
+    parser.add_argument("--lr", type=float, default=1e-3)
+    args = parser.parse_args(argv)
+    cfg = load_train_config(args.config)
+    if args.lora_targets:
+        policy_module.LORA_TARGETS = args.lora_targets
+    _, policy, _ = build(cfg)
+    prior = policy.prior
+    caches = [torch.load(c) for c in args.cache + [args.held_out]]
+    held_count = len(caches[-1]["x_in"])
+    x_in, cond, target = (torch.cat(parts) for parts in zip(*(c.values() for c in caches)))
+    del caches
+    with policy.base_policy():
+        x0 = predictions(policy.predict_x0, x_in, cond).clamp(-1, 1)
+    move = target - x0
+    keep = policy.reference_features(policy.adapter)
+    adapted = torch.ones(move.shape[-1], dtype=torch.bool) if keep is None else ~keep
+    weight = ((target[..., 8:].argmax(-1) != prior.stats.spec.empty_index)[..., None] & adapted).float()
+    generator = torch.Generator().manual_seed(0)
+    train, held = torch.arange(len(x_in) - held_count), torch.arange(len(x_in) - held_count, len(x_in))
+    print(f"{len(train)} rooms to train on, {len(held)} held out; the move's mean square "
+          f"{float((move.square() * weight).sum() / weight.sum()):.5f} per adapted feature")
+
+    def score(move_of, rows) -> float:  # the share explained of the rooms ``rows``' move
+        return explained(move_of(rows), move[rows], weight[rows])
+
+    seen = train[:len(held)]
+    if args.run:
+        policy.load_adapter(Path(args.run) / ADAPTERS_DIR / cfg.adapter, cfg.adapter)
+
+        def adapter_move(rows):
+            return predictions(policy.predict_x0, x_in[rows], cond[rows]).clamp(-1, 1) - x0[rows]
+        print(f"the adapter of {args.run}: explains {score(adapter_move, held):.1%} of the held-out rooms' move, "
+              f"{score(adapter_move, seen):.1%} of as many trained-on rooms'")
+
+    fresh = SceneDenoiser(prior.denoiser.config, prior.denoiser.feature_dim)
+    fresh.set_metric_scale(prior.stats)
+    optimizer = torch.optim.Adam(fresh.parameters(), lr=args.lr)
+    t0 = torch.zeros(args.batch, dtype=torch.long)
+    for epoch in range(1, args.epochs + 1):
+        fresh.train()
+        for rows in train[torch.randperm(len(train), generator=generator)].split(args.batch):
+            w = weight[rows]
+            loss = ((fresh(x0[rows], t0[:len(rows)], cond[rows]) - move[rows]).square() * w).sum() / w.sum()
+            optimizer.zero_grad(set_to_none=True)
+            loss.backward()
+            optimizer.step()
+        fresh.eval()
+        def fresh_move(rows):
+            return predictions(fresh, x0[rows], cond[rows])
+        print(f"epoch {epoch}: the fresh network explains {score(fresh_move, held):.1%} of the held-out rooms' "
+              f"move, {score(fresh_move, seen):.1%} of as many trained-on rooms'", flush=True)
+
+if __name__ == "__main__":
+    main()
