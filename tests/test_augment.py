@@ -58,6 +58,10 @@ def test_augment_samples_the_priors_training_floors_and_resumes_the_same_rooms(t
         assert ((room.translations[:, 0] > xmin - 0.5) & (room.translations[:, 0] < xmax + 0.5)).all()
     assert len(load_layouts(out / "atiss", "bedroom")) == 7
     assert sorted(p.name for p in (out / "chunks").iterdir()) == ["0000.json", "0001.json", "0002.json"]
+    finetune, control = (yaml.safe_load((out / name).read_text()) for name in ("finetune.yaml", "control.yaml"))
+    assert finetune["extra_datasets"][0]["dataset"] == str((out / "scenes.json").resolve())
+    assert control == {**finetune, "extra_datasets": [], "out": str(out / "control")}  # the data alone, else alike
+    assert f"iarcs pretrain --config {out / 'control.yaml'} --stop-at STEPS" in capsys.readouterr().out
     before = json.loads((out / "scenes.json").read_text())["scenes"]
     (out / "chunks" / "0001.json").unlink()  # as if killed while sampling it
     capsys.readouterr()
@@ -76,6 +80,8 @@ def test_augment_fine_tunes_the_prior_on_its_data_plus_the_rooms(tiny_recipe, tm
     assert cfg["init_from"] == "default" and cfg["lr"] == 1.0e-4
     assert cfg["extra_datasets"] == [{"dataset": str((out / "scenes.json").resolve()), "weight": pytest.approx(6 / 36)}]
     assert (out / "prior" / "prior.pt").exists() and (out / "prior" / "train_state.pt").exists()
+    step = json.loads((out / "prior" / "metrics.jsonl").read_text().splitlines()[-1])["step"]
+    assert f"iarcs pretrain --config {out / 'control.yaml'} --stop-at {step}" in printed
 
 
 @pytest.mark.parametrize("argv, message", [

@@ -4,7 +4,9 @@ generator with iARCS-generated rooms lowers its collisions and out-of-bound obje
 
 Everything lands in ``--out``: ``chunks/`` (the sampling, a file per 250 floors: an interrupted run resumes where
 it stopped and samples the same rooms), ``scenes.json`` and ``atiss/`` (the augmentation, neutral JSON and an
-ATISS folder), ``finetune.yaml`` (the fine-tuning config) and ``prior/`` (its run folder: ``prior.pt``).
+ATISS folder), ``finetune.yaml`` (the fine-tuning config), ``control.yaml`` (the same fine-tune on the prior's data
+alone, Table 4's control: run it with ``iarcs pretrain --config`` for as many steps) and ``prior/`` (the fine-tune's
+run folder: ``prior.pt``).
 """
 
 from __future__ import annotations
@@ -100,10 +102,8 @@ def cmd_augment(args) -> int:
                           seed=args.seed, floors=f"procedural seed {recipe.data_seed} (the prior's training floors)")
     save_layouts(layouts, out / "atiss")
     print(f"{len(layouts)} {room}s sampled with {args.adapter}: {scenes}, {out / 'atiss'}")
-    if args.minutes == 0:
-        return 0
 
-    # 2. the prior fine-tuned on its data plus the sampled rooms
+    # 2. the prior fine-tuned on its data plus the sampled rooms; its control on the data alone
     import yaml
 
     from agents.config import resolve_device
@@ -113,16 +113,24 @@ def cmd_augment(args) -> int:
     cfg = replace(recipe, **FINETUNE, init_from="default", out=str(out / "prior"), device=str(device),
                   extra_datasets=[{"dataset": str(scenes.resolve()), "weight": float(weight)}],
                   precision="fp32" if device.type == "cpu" else recipe.precision, compile=False, num_threads=0)
-
-    (out / "finetune.yaml").write_text(
-        f"# iarcs augment --room {room} --num-scenes {args.num_scenes} --adapter {args.adapter} --seed {args.seed}: "
-        f"the shipped prior fine-tuned for {args.minutes:g} minutes on its data plus these rooms\n"
-        + yaml.safe_dump(asdict(cfg), sort_keys=False))
+    command = f"iarcs augment --room {room} --num-scenes {args.num_scenes} --adapter {args.adapter} --seed {args.seed}"
+    (out / "finetune.yaml").write_text(f"# {command}: the shipped prior fine-tuned on its data plus these rooms\n"
+                                       + yaml.safe_dump(asdict(cfg), sort_keys=False))
+    control = replace(cfg, extra_datasets=[], out=str(out / "control"))
+    (out / "control.yaml").write_text(f"# {command}: the control, the same fine-tune on the prior's data alone\n"
+                                      + yaml.safe_dump(asdict(control), sort_keys=False))
+    if args.minutes == 0:
+        print(f"fine-tune later, the augmented prior and its control for as many steps:\n"
+              f"  iarcs pretrain --config {out / 'finetune.yaml'} --stop-at STEPS\n"
+              f"  iarcs pretrain --config {out / 'control.yaml'} --stop-at STEPS")
+        return 0
     print(f"fine-tuning the {room} prior on its data plus these rooms (weight {weight:.3f}) for {args.minutes:g} "
           f"minutes: {out / 'finetune.yaml'}")
     result = train(cfg, time_budget=args.minutes * 60)
     prior = out / "prior" / "prior.pt"
     print(f"step {result.step} in {result.seconds:.0f} s; the augmented prior: {prior}\n"
-          f"compare it with the shipped one on held-out floors: iarcs sample --room {room} --checkpoint {prior} "
+          f"its control, the data alone for as many steps: iarcs pretrain --config {out / 'control.yaml'} --stop-at "
+          f"{result.step}\n"
+          f"compare them with the shipped one on held-out floors: iarcs sample --room {room} --checkpoint {prior} "
           f"--floors FLOORS.json --out A.json; iarcs evaluate --scenes A.json --reference FLOORS.json")
     return 0
