@@ -19,7 +19,7 @@ from experiments.cli import add_device_option, finite_float
 EXPERIMENTS = Path(__file__).resolve().parents[1]
 #: The recipe each room's shipped prior was trained with: its training floors and its losses.
 RECIPES = {"bedroom": EXPERIMENTS / "pretrain_bedroom_finish_cpu.yaml",
-           "livingroom": EXPERIMENTS / "pretrain_livingroom_slots_cpu_minsnr_overlap.yaml",
+           "livingroom": EXPERIMENTS / "pretrain_livingroom_finish_cpu.yaml",
            "diningroom": EXPERIMENTS / "pretrain_diningroom_slots_cpu_minsnr_overlap.yaml"}
 CHUNK = 250
 #: Fine-tuning a trained prior: a tenth of the recipes' peak learning rate, held after a short warm-up (a clock
