@@ -8,8 +8,8 @@ they explain (1 - miss / move, over the objects present and the adapted features
   the clean room x0_hat (t = 0) and the floor, ``--epochs`` passes.
 
 The adapter explaining little where the fresh network explains much: the prior's features, not the rooms, limit
-what the adapter learns. Both explaining little: the move is not a function of the room that this network learns
-from these rooms.
+what the adapter learns. The adapter explaining more (measured: docs/results/stage1_living_dining.md): the prior's
+features help, and the number of rooms is what limits it.
 
     .venv/bin/python research/descent_probe.py experiments/ablations/stage1_livingroom_descent.yaml \
         --cache ROOMS.pt --held-out OTHER.pt --run RUN --lora-targets REGEX --epochs 10
