@@ -57,17 +57,14 @@ def main(argv=None) -> None:
                         "target_modules), in place of the attention projections (agents.policy.LORA_TARGETS)")
     args = parser.parse_args(argv)
     cfg = load_train_config(args.config)
-    if args.lora_targets:
-        policy_module.LORA_TARGETS = args.lora_targets
-    algo, policy, _ = build(cfg)
-    stats = policy.prior.stats
+    algo, policy = build_with_targets(cfg, args.lora_targets)
     weights = penalty_weights(algo.config, algo.contact())
     generator = torch.Generator().manual_seed(cfg.seed)
 
     if args.init:
         policy.load_adapter(Path(args.init) / ADAPTERS_DIR / cfg.adapter, cfg.adapter)
     if args.cache and all(Path(c).exists() for c in args.cache):
-        x_in, cond, target = (torch.cat(parts) for parts in zip(*(torch.load(c).values() for c in args.cache)))
+        x_in, cond, target = load_rooms(args.cache)
     elif len(args.cache) > 1:
         raise SystemExit(f"missing: {', '.join(c for c in args.cache if not Path(c).exists())} (make each file with "
                          f"a run of its own)")
@@ -75,9 +72,7 @@ def main(argv=None) -> None:
         x_in, cond, target = descended_rooms(cfg, algo, policy, args.rooms, generator)
         if args.cache:
             torch.save({"x_in": x_in, "cond": cond, "target": target}, args.cache[0])
-    keep = policy.reference_features(policy.adapter)
-    adapted = torch.ones(target.shape[-1], dtype=torch.bool) if keep is None else ~keep
-    weight = ((target[..., 8:].argmax(-1) != stats.spec.empty_index)[..., None] & adapted).float()
+    weight = adapted_objects(policy, target)
     t0 = torch.zeros(len(x_in), dtype=torch.long)
 
     other = held_out_floors(cfg.room, args.other_floors)
@@ -102,6 +97,27 @@ def main(argv=None) -> None:
             Path(args.out).mkdir(parents=True, exist_ok=True)
             (Path(args.out) / "config.yaml").write_text(yaml.safe_dump(dataclasses.asdict(cfg), sort_keys=False))
             policy.save_adapter(Path(args.out) / ADAPTERS_DIR)
+
+
+def build_with_targets(cfg, lora_targets: str | None = None):
+    """The config's algorithm and policy, the LoRA on the layers ``lora_targets`` (a regular expression, peft's
+    target_modules) matches in place of the attention projections (agents.policy.LORA_TARGETS)."""
+    if lora_targets:
+        policy_module.LORA_TARGETS = lora_targets
+    algo, policy, _ = build(cfg)
+    return algo, policy
+
+
+def load_rooms(paths) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """The x_in, cond and target of the cache files ``paths``, their rooms together in the files' order."""
+    return tuple(torch.cat(parts) for parts in zip(*(torch.load(p).values() for p in paths)))
+
+
+def adapted_objects(policy, target: torch.Tensor) -> torch.Tensor:
+    """(B, N, F) weights of the regression: 1 on the adapted features of the objects present in ``target``."""
+    keep = policy.reference_features(policy.adapter)
+    adapted = torch.ones(target.shape[-1], dtype=torch.bool) if keep is None else ~keep
+    return ((target[..., 8:].argmax(-1) != policy.prior.stats.spec.empty_index)[..., None] & adapted).float()
 
 
 def held_out_floors(room: str, count: int) -> list:

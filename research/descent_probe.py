@@ -24,10 +24,11 @@ from pathlib import Path
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+sys.path.insert(0, str(Path(__file__).resolve().parent))  # its sibling script
 
-from agents import policy as policy_module  # noqa: E402
 from agents.denoiser import SceneDenoiser  # noqa: E402
-from agents.train import ADAPTERS_DIR, build, load_train_config  # noqa: E402
+from agents.train import ADAPTERS_DIR, load_train_config  # noqa: E402
+from descent_offline import adapted_objects, build_with_targets, load_rooms  # noqa: E402
 
 
 def explained(pred: torch.Tensor, move: torch.Tensor, weight: torch.Tensor) -> float:
@@ -55,20 +56,16 @@ def main(argv=None) -> None:
     parser.add_argument("--lr", type=float, default=1e-3)
     args = parser.parse_args(argv)
     cfg = load_train_config(args.config)
-    if args.lora_targets:
-        policy_module.LORA_TARGETS = args.lora_targets
-    _, policy, _ = build(cfg)
+    _, policy = build_with_targets(cfg, args.lora_targets)
     prior = policy.prior
-    caches = [torch.load(c) for c in args.cache + [args.held_out]]
-    held_count = len(caches[-1]["x_in"])
-    x_in, cond, target = (torch.cat(parts) for parts in zip(*(c.values() for c in caches)))
-    del caches
+    trained_on, held_out = load_rooms(args.cache), load_rooms([args.held_out])
+    x_in, cond, target = (torch.cat(pair) for pair in zip(trained_on, held_out))
+    held_count = len(held_out[0])
+    del trained_on, held_out
     with policy.base_policy():
         x0 = predictions(policy.predict_x0, x_in, cond).clamp(-1, 1)
     move = target - x0
-    keep = policy.reference_features(policy.adapter)
-    adapted = torch.ones(move.shape[-1], dtype=torch.bool) if keep is None else ~keep
-    weight = ((target[..., 8:].argmax(-1) != prior.stats.spec.empty_index)[..., None] & adapted).float()
+    weight = adapted_objects(policy, target)
     generator = torch.Generator().manual_seed(0)
     train, held = torch.arange(len(x_in) - held_count), torch.arange(len(x_in) - held_count, len(x_in))
     print(f"{len(train)} rooms to train on, {len(held)} held out; the move's mean square "
@@ -77,17 +74,21 @@ def main(argv=None) -> None:
     def score(move_of, rows) -> float:  # the share explained of the rooms ``rows``' move
         return explained(move_of(rows), move[rows], weight[rows])
 
+    def adapter_move(rows):
+        return predictions(policy.predict_x0, x_in[rows], cond[rows]).clamp(-1, 1) - x0[rows]
+
     seen = train[:len(held)]
     if args.run:
         policy.load_adapter(Path(args.run) / ADAPTERS_DIR / cfg.adapter, cfg.adapter)
-
-        def adapter_move(rows):
-            return predictions(policy.predict_x0, x_in[rows], cond[rows]).clamp(-1, 1) - x0[rows]
         print(f"the adapter of {args.run}: explains {score(adapter_move, held):.1%} of the held-out rooms' move, "
               f"{score(adapter_move, seen):.1%} of as many trained-on rooms'")
 
     fresh = SceneDenoiser(prior.denoiser.config, prior.denoiser.feature_dim)
     fresh.set_metric_scale(prior.stats)
+
+    def fresh_move(rows):
+        return predictions(fresh, x0[rows], cond[rows])
+
     optimizer = torch.optim.Adam(fresh.parameters(), lr=args.lr)
     t0 = torch.zeros(args.batch, dtype=torch.long)
     for epoch in range(1, args.epochs + 1):
@@ -99,10 +100,9 @@ def main(argv=None) -> None:
             loss.backward()
             optimizer.step()
         fresh.eval()
-        def fresh_move(rows):
-            return predictions(fresh, x0[rows], cond[rows])
         print(f"epoch {epoch}: the fresh network explains {score(fresh_move, held):.1%} of the held-out rooms' "
               f"move, {score(fresh_move, seen):.1%} of as many trained-on rooms'", flush=True)
+
 
 if __name__ == "__main__":
     main()
