@@ -478,14 +478,19 @@ def markdown_report(work: Path) -> str:
     beds = {n: ev[n].get("bed_ablation") for n in cols if ev[n].get("bed_ablation")}
     if beds:
         L += ["Bed ablation (agents/bed_ablation.py on these floors' rooms with one bed and a nightstand: rooms noised "
-              "to t and restored in one step with and without the bed; medians in m):", "",
-              "| prior | t | nightstands kept | error with the bed | error, bed removed | moved by removing the bed | "
-              "out from the bed's side (quartiles): truth / with bed / without |", "|---|---:|---|---:|---:|---:|---|"]
+              "to t and restored in one step with and without the bed, 4 noise draws pooled; medians in m):", "",
+              "| prior | t | nightstands kept | error with the bed | error, bed removed | ratio "
+              "| moved by removing the bed | the bed's own error | error in the restored bed's frame "
+              "| out from the bed's side (quartiles): truth / with bed / without |",
+              "|---|---:|---|---:|---:|---:|---:|---:|---:|---|"]
         for n, b in beds.items():
             for t_, f in b["figures"].items():
                 q = lambda v: ", ".join(fmt(x, "f2") for x in v)  # noqa: E731
-                L.append(f"| {n} | {t_} | {f['kept']} of {f['nightstands']} | {fmt(f['error_with_bed_m'], 'f3')} | "
-                         f"{fmt(f['error_without_bed_m'], 'f3')} | {fmt(f['moved_by_removing_bed_m'], 'f3')} | "
+                ratio = f["error_with_bed_m"] / f["error_without_bed_m"] if f["error_without_bed_m"] else None
+                L.append(f"| {n} | {t_} | {f['kept']} of {f['nightstands'] * f['noise_draws']} | "
+                         f"{fmt(f['error_with_bed_m'], 'f3')} | {fmt(f['error_without_bed_m'], 'f3')} | "
+                         f"{fmt(ratio, 'f2')} | {fmt(f['moved_by_removing_bed_m'], 'f3')} | "
+                         f"{fmt(f['bed_error_m'], 'f3')} | {fmt(f['error_from_restored_bed_m'], 'f3')} | "
                          f"{q(f['out_from_side_truth'])} / {q(f['out_from_side_with_bed'])} / "
                          f"{q(f['out_from_side_without_bed'])} |")
         L += [""]

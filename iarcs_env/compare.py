@@ -10,7 +10,10 @@ an interval:
 * every metric is a ratio of per-scene sums, exactly as :func:`iarcs_env.metrics.evaluate_layouts` pools it:
   ``Col_obj`` = colliding / ground objects, ``Col_scene`` = scenes with a collision / scenes, ``R_out`` =
   out-of-bound / all objects, ``R_reach`` = reachable / ground objects, ``R_walkable`` = mean per scene, and
-  ``task_<name>`` = scenes passing the checker / scenes (when the reports have ``--task``);
+  ``task_<name>`` = scenes passing the checker / scenes (when the reports have ``--task``), and for each of
+  the room type's relations (``iarcs evaluate``'s Relations table) ``relation_<name>`` = scenes where it holds /
+  scenes, and ``relation_<name> given its objects`` = scenes where it holds / scenes holding the objects it needs (its
+  co-occurrence);
 * and three counts per room that say what a rate's change is made of: ``out_of_bound / room`` (R_out's
   numerator), ``objects / room`` (its denominator) and ``ground_objects / room`` (Col_obj's; the difference
   is the ceiling and pendant lamps, which never collide and are hardly ever out of bound, so an adapter
@@ -30,6 +33,8 @@ import numpy as np
 
 #: Metrics compared (the tasks' success rates are added when every report has them).
 COMPARED = ("Col_obj", "Col_scene", "R_out", "R_reach", "R_walkable")
+#: Suffix of a relation's rate given its co-occurrence (the scenes holding the objects it needs).
+GIVEN_OBJECTS = " given its objects"
 #: Counts per room (means over scenes), printed as numbers, not percentages.
 PER_ROOM = ("out_of_bound / room", "objects / room", "ground_objects / room")
 
@@ -64,6 +69,10 @@ def _terms(scene: dict, metric: str, where: str) -> tuple[float, float]:
         return scene["R_walkable"], 1.0
     if metric.startswith("task_"):
         return float(scene["tasks"][metric[5:]]), 1.0
+    if metric.startswith("relation_"):  # a scene's record names a relation only where its co-occurrence holds
+        name, given_objects = metric[9:].removesuffix(GIVEN_OBJECTS), metric.endswith(GIVEN_OBJECTS)
+        relations = scene.get("relations", {})
+        return float(relations.get(name, False)), float(name in relations) if given_objects else 1.0
     if metric in PER_ROOM:
         key = metric.split(" / ")[0]
         return float(len(scene[key]) if key == "out_of_bound" else scene[key]), 1.0
@@ -73,7 +82,10 @@ def _terms(scene: dict, metric: str, where: str) -> tuple[float, float]:
 def _metrics(reports: Sequence[dict]) -> list[str]:
     tasks = [set(s.get("tasks", {})) for r in reports for s in r["per_scene"]]
     common = sorted(set.intersection(*tasks)) if tasks else []
-    return list(COMPARED) + [f"task_{t}" for t in common] + list(PER_ROOM)
+    relations = [set(r.get("relations", {})) for r in reports]
+    shared = [n for n in reports[0].get("relations", {}) if all(n in names for names in relations)]
+    return (list(COMPARED) + [f"task_{t}" for t in common]
+            + [m for n in shared for m in (f"relation_{n}", f"relation_{n}{GIVEN_OBJECTS}")] + list(PER_ROOM))
 
 
 def _per_floor(reports: Sequence[dict], ids: list[str], metric: str, side: str) -> np.ndarray:

@@ -90,3 +90,24 @@ def test_user_errors_are_clear(tmp_path, capsys):
         assert main(["compare", *argv]) == 2, argv
         err = capsys.readouterr().err
         assert message in err and "Traceback" not in err, (argv, err)
+
+
+def test_relations_pool_over_all_rooms_and_given_their_objects(tmp_path, capsys):
+    """Each relation of `iarcs evaluate`'s Relations table is compared over all rooms and over the rooms holding
+    its objects: a bed with two nightstands flanking its head (holds), the same nightstands at its foot (the objects
+    without the relation), a bed alone (neither)."""
+    bed = box("double_bed", 2.0, 1.05, 0.8, 1.0)  # x from 1.2 to 2.8, its head against the wall at z = 0.05
+    head = [box("nightstand", 3.05, 0.5, 0.2, 0.2), box("nightstand", 0.95, 0.5, 0.2, 0.2)]
+    foot = [box("nightstand", 3.05, 2.6, 0.2, 0.2), box("nightstand", 0.95, 2.6, 0.2, 0.2)]
+    placed = {"head": head, "foot": foot, "alone": []}
+    rooms = lambda kinds: [make_layout([bed] + placed[k], id=f"room_{i}") for i, k in enumerate(kinds)]  # noqa: E731
+    base = evaluate(tmp_path, rooms(["head"] * 2 + ["foot"] * 6 + ["alone"] * 2), "base")
+    run = evaluate(tmp_path, rooms(["head"] * 6 + ["foot"] * 2 + ["alone"] * 2), "run")
+    changes = {c.metric: c for c in compare_reports([json.loads(base.read_text())], [json.loads(run.read_text())],
+                                                     n_boot=200)}
+    over_all, given = changes["relation_two_nightstands"], changes["relation_two_nightstands given its objects"]
+    assert (over_all.base, over_all.run, over_all.change) == pytest.approx((0.2, 0.6, 2.0))
+    assert (given.base, given.run) == pytest.approx((0.25, 0.75))
+    assert "relation_tv_from_bed" in changes and changes["relation_tv_from_bed"].base == 0  # no TV stand anywhere
+    assert main(["compare", "--base", str(base), "--run", str(run), "--boot", "200"]) == 0
+    assert "| relation_two_nightstands given its objects | 25.00% | 75.00% | +200.0% |" in capsys.readouterr().out

@@ -238,7 +238,7 @@ def test_real_bedrooms_land_on_the_reference_figures():
 def test_bed_ablation_removes_only_the_bed_and_measures_from_it():
     """agents/bed_ablation.py (issue 37's "the denoiser uses the bed"): only rooms with one bed and a nightstand
     count; emptying the bed's slot moves the restored nightstands of a network that attends across slots;
-    distances out from the bed's side."""
+    distances out from the bed's side; the nightstands of every noise draw pooled."""
     from agents.bed_ablation import bed_ablation
     from agents.denoiser import ScenePrior
     from conftest import perturb_zero_init
@@ -250,7 +250,8 @@ def test_bed_ablation_removes_only_the_bed_and_measures_from_it():
     left, right = box("nightstand", 3.05, 0.5, 0.2, 0.2), box("nightstand", 0.95, 0.5, 0.2, 0.2)  # 0.25 m out
     rooms = [make_layout([bed, left]), make_layout([bed, left, right]),
              make_layout([bed, box("single_bed", 3.6, 3.0, 0.45, 0.9), left]), make_layout([bed])]
-    f = bed_ablation(prior, rooms, [1])[1]
-    assert (f["rooms"], f["nightstands"], f["kept"]) == (2, 3, 3)
+    f = bed_ablation(prior, rooms, [1], noise_draws=2)[1]
+    assert (f["rooms"], f["nightstands"], f["kept"], f["noise_draws"]) == (2, 3, 2 * 3, 2)
     assert f["out_from_side_truth"] == pytest.approx([0.25, 0.25, 0.25], abs=1e-3)
     assert f["error_with_bed_m"] < 0.05 and f["moved_by_removing_bed_m"] > 0
+    assert f["bed_error_m"] < 0.05 and f["error_from_restored_bed_m"] < 0.1  # t = 1: the bed restored where it was
