@@ -114,10 +114,6 @@ class DDPOConfig:
     kl_coef: float = 0.0
     """Weight of a KL penalty to the policy the adapter starts from (its reference adapter, e.g. stage 1 for a
     partial stage-2 adapter; else the prior, adapters disabled), against diversity collapse and drift."""
-    data_anchor: float = 0.0
-    """``physics-gradient`` only: the weight of the adapted denoiser's x0 error on the prior's own training rooms
-    (noised to a random t), added to each update's loss: the pretraining loss kept beside the reward gradient (as
-    InstructGPT's PPO-ptx keeps the language-model loss), so that the adapter stays a model of the data's rooms."""
     seed: int = 0
     """Seeds floor choice, the policy's noise and the environment."""
 

@@ -29,11 +29,6 @@ A policy gradient from 32 scenes an epoch has to discover, scene by scene, which
 this gradient says it for every pair. It uses :class:`~agents.ddpo.DDPO`'s rollouts, evaluation, checkpoints
 and callbacks; only the update differs.
 
-With ``data_anchor`` w_data > 0 the loss also holds w_data times the adapted denoiser's mean square x0 error on a
-minibatch of the prior's own training rooms (``ANCHOR_ROOMS`` procedural rooms of seed 0, rotated, noised to a
-uniform t): the pretraining loss kept beside the reward's gradient (InstructGPT's PPO-ptx), against the drift that
-takes chairs from their tables while collisions fall.
-
 In stage 2 the task reward joins it: ``loss -= w_task * mean over scenes of R_task(x0_hat(x_t))``, with w_task
 the composite reward's weight of its ``task`` term. The generated program runs in its sandbox, which returns
 d R_task / d geometry (:meth:`rewards.sandbox.SandboxedReward.gradient`); the chain rule through the decoding is
@@ -63,8 +58,6 @@ from .ddpo import DDPO, DDPOConfig
 CONTACT_REACH = CHAIR_GAP
 """m: a pair of the collision reward's ``contact`` classes whose bounds are closer than this is drawn together by
 ``contact_gap_weight`` (the chairs_at_dining_table relation's reach)."""
-ANCHOR_ROOMS = 4096
-"""Procedural rooms (seed 0: the first of the shipped priors' training rooms) that ``data_anchor`` draws from."""
 DEPTH_MARGIN = 0.02
 """m: with ``overlap_measure: depth``, pairs closer than this count as overlapping (pushed apart to it)."""
 
@@ -194,25 +187,6 @@ class PhysicsGradient(DDPO):
         task = getattr(fn, "functions", {}).get("task")
         return (task, fn.weights["task"]) if hasattr(task, "gradient") else None
 
-    def data_anchor_loss(self, size: int) -> torch.Tensor:
-        """The adapted denoiser's mean square x0 error on ``size`` of the prior's training rooms, each rotated by a
-        quarter turn at random and noised to a uniform t (module doc)."""
-        prior = self.policy.prior
-        if getattr(self, "anchor_rooms", None) is None:
-            from iarcs_env.datasets.procedural import generate_layouts
-
-            from .pretrain_data import SceneTensors
-            rooms = generate_layouts(prior.spec.name, ANCHOR_ROOMS, seed=0)
-            self.anchor_rooms = SceneTensors.from_layouts(rooms, prior.num_slots,
-                                                          canonical_order=prior.denoiser.config.slot_embedding)
-        from .pretrain_data import encode_batch
-        idx = torch.randint(0, len(self.anchor_rooms), (size,), generator=self.generator)
-        x0, floor = encode_batch(prior.spec, prior.stats, *self.anchor_rooms.batch(idx, self.generator, rotate=True))
-        t = torch.randint(0, prior.schedule.config.num_train_timesteps, (size,), generator=self.generator)
-        x_t = prior.schedule.q_sample(x0, t, torch.randn(x0.shape, generator=self.generator))
-        x0_hat = self.policy.predict_x0(x_t.to(self.device), t.to(self.device), floor.to(self.device))
-        return ((x0_hat.cpu() - x0) ** 2).mean()
-
     def train(self, rollout: TensorDict) -> dict[str, float]:
         cfg, venv = self.config, self.venv
         steps = self.stochastic_steps()[-cfg.gradient_steps:]
@@ -234,10 +208,6 @@ class PhysicsGradient(DDPO):
                     surrogate, values, size = task_surrogate(task[0], x0_hat, venv.stats, floors)
                     loss = loss - task[1] * surrogate / len(floors)
                     info.update(task=values.mean().item(), task_gradient=size / len(floors))
-                if cfg.data_anchor > 0:
-                    anchor = self.data_anchor_loss(len(rows))
-                    loss = loss + cfg.data_anchor * anchor
-                    info["data_anchor"] = anchor.item()
                 if cfg.kl_coef > 0:  # anchored to the reference: what already passes is not pushed further
                     kl = self.kl_to_base(mb)
                     loss = loss + cfg.kl_coef * kl

@@ -318,28 +318,6 @@ def test_physics_gradient_lowers_the_penalty_of_its_rollouts_and_resumes_by_name
         make_model(PhysicsGradient, gradient_steps=0)
 
 
-def test_the_data_anchor_keeps_the_adapter_a_model_of_the_priors_rooms(monkeypatch):
-    """ddpo.data_anchor: the adapted denoiser's x0 error on the prior's training rooms joins the loss; trained on the
-    same rollouts, the anchored adapter's error on those rooms falls, and ends lower than the free one's."""
-    import agents.physics_gradient as pg
-
-    monkeypatch.setattr(pg, "ANCHOR_ROOMS", 64)
-    errors = {}
-    for weight in (0.0, 50.0):
-        model = make_model(PhysicsGradient, learning_rate=1e-2, gradient_steps=2, data_anchor=weight)
-        rollout = model.collect_rollouts()
-        model.generator.manual_seed(123)
-        with torch.no_grad():
-            before = float(model.data_anchor_loss(64))
-        for _ in range(25):
-            info = model.train(rollout)
-        model.generator.manual_seed(123)  # the same rooms, timesteps and noise for both
-        with torch.no_grad():
-            errors[weight] = float(model.data_anchor_loss(64))
-        assert ("data_anchor" in info) == (weight > 0) and len(model.anchor_rooms) == 64
-    assert errors[50.0] < 0.95 * before and errors[50.0] < 0.9 * errors[0.0], (before, errors)
-
-
 def test_descent_imitation_moves_its_predictions_by_the_descent_of_its_rooms_and_resumes_by_name(tmp_path):
     """The move is the rollouts' final rooms' descent, in x and z only, to a lower penalty; an update takes the
     adapter's clean-scene predictions at the rollout's last states towards themselves plus that move (the final
