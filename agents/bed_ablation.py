@@ -83,6 +83,7 @@ def bed_ablation(prior: ScenePrior, rooms: list, timesteps, seed: int = 0, noise
             pooled["side_truth"].append(out_from_side(scene, truth))
             pooled["side_with"].append(out_from_side(scene, with_bed))
             pooled["side_without"].append(out_from_side(scene, without))
+
         def median(k):
             v = torch.cat(pooled[k])
             return float(v.median()) if len(v) else float("nan")
