@@ -486,10 +486,9 @@ def markdown_report(work: Path) -> str:
         for n, b in beds.items():
             for t_, f in b["figures"].items():
                 q = lambda v: ", ".join(fmt(x, "f2") for x in v)  # noqa: E731
-                ratio = f["error_with_bed_m"] / f["error_without_bed_m"] if f["error_without_bed_m"] else None
                 L.append(f"| {n} | {t_} | {f['kept']} of {f['nightstands'] * f['noise_draws']} | "
                          f"{fmt(f['error_with_bed_m'], 'f3')} | {fmt(f['error_without_bed_m'], 'f3')} | "
-                         f"{fmt(ratio, 'f2')} | {fmt(f['moved_by_removing_bed_m'], 'f3')} | "
+                         f"{fmt(f['ratio'], 'f2')} | {fmt(f['moved_by_removing_bed_m'], 'f3')} | "
                          f"{fmt(f['bed_error_m'], 'f3')} | {fmt(f['error_from_restored_bed_m'], 'f3')} | "
                          f"{q(f['out_from_side_truth'])} / {q(f['out_from_side_with_bed'])} / "
                          f"{q(f['out_from_side_without_bed'])} |")

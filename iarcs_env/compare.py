@@ -72,7 +72,7 @@ def _terms(scene: dict, metric: str, where: str) -> tuple[float, float]:
     if metric.startswith("relation_"):  # a scene's record names a relation only where its co-occurrence holds
         name, given_objects = metric[9:].removesuffix(GIVEN_OBJECTS), metric.endswith(GIVEN_OBJECTS)
         relations = scene.get("relations", {})
-        return float(relations.get(name, False)), float(name in relations) if given_objects else 1.0
+        return float(relations.get(name, False)), (float(name in relations) if given_objects else 1.0)
     if metric in PER_ROOM:
         key = metric.split(" / ")[0]
         return float(len(scene[key]) if key == "out_of_bound" else scene[key]), 1.0

@@ -254,4 +254,5 @@ def test_bed_ablation_removes_only_the_bed_and_measures_from_it():
     assert (f["rooms"], f["nightstands"], f["kept"], f["noise_draws"]) == (2, 3, 2 * 3, 2)
     assert f["out_from_side_truth"] == pytest.approx([0.25, 0.25, 0.25], abs=1e-3)
     assert f["error_with_bed_m"] < 0.05 and f["moved_by_removing_bed_m"] > 0
+    assert f["ratio"] == pytest.approx(f["error_with_bed_m"] / f["error_without_bed_m"])
     assert f["bed_error_m"] < 0.05 and f["error_from_restored_bed_m"] < 0.1  # t = 1: the bed restored where it was
