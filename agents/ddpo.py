@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import json
 import time
-from dataclasses import asdict, dataclass, fields
+from dataclasses import asdict, dataclass, field, fields
 from pathlib import Path
 
 import numpy as np
@@ -102,6 +102,14 @@ class DDPOConfig:
     """``physics-gradient`` only: > 0 charges every ground object out of R_reach's reach this weight times how much
     its widest free path is too narrow (m: the agent radius, 0.3 m, less the path's clearance at its narrowest;
     :func:`iarcs_env.clearance.reach_clearance`): the objects that close a walkway move to open it."""
+    best_of_floor_weight: float = 0.0
+    """``physics-gradient`` only: > 0 adds this weight times the mean square of the clean scene x0_hat that the
+    adapter predicts at the steps of ``best_of_floor_t`` of each floor's best rollout (highest reward of its
+    ``samples_per_floor``) against the room that rollout ended in (its objects' adapted features): the choices a
+    room makes at mid noise, which the late steps' gradient does not reach (which wall the bed faces), drawn
+    towards the group's best (reward-ranked fine-tuning, RAFT, on the policy's own states)."""
+    best_of_floor_t: list = field(default_factory=lambda: [250, 450])
+    """``physics-gradient`` only: the range of timesteps [low, high] whose states ``best_of_floor_weight`` uses."""
     descent_steps: int = 300
     """``descent-imitation`` only (agents/descent_imitation.py): the Adam steps that move each rollout's rooms down
     the physics penalty before the adapter learns them."""

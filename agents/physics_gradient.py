@@ -187,12 +187,39 @@ class PhysicsGradient(DDPO):
         task = getattr(fn, "functions", {}).get("task")
         return (task, fn.weights["task"]) if hasattr(task, "gradient") else None
 
+    def best_of_floor(self, rollout: TensorDict) -> torch.Tensor:
+        """(B,) bool: the scene of highest reward in each floor's group of the rollout (``best_of_floor_weight``)."""
+        reward, floor = rollout["reward"][:, 0], rollout["floor_index"][:, 0]
+        best = torch.zeros(len(reward), dtype=torch.bool)
+        for group in floor.unique():
+            members = torch.nonzero(floor == group).reshape(-1)
+            best[members[reward[members].argmax()]] = True
+        return best
+
+    def final_rooms(self, rollout: TensorDict) -> tuple[torch.Tensor, torch.Tensor]:
+        """The rooms the rollout's chains ended in (B, N, F; given classes in place) and the weights (B, N, F) of a
+        regression onto them: 1 on the adapted features of the objects present."""
+        last = rollout[:, -1]
+        x0 = last["action"].clamp(-1, 1)
+        if "classes" in last.keys():
+            x0 = self.policy.prior.with_clean_classes(x0, last["classes"])
+        keep = self.policy.reference_features(self.policy.adapter)
+        adapted = torch.ones(x0.shape[-1], dtype=torch.bool) if keep is None else ~keep
+        present = x0[..., 8:].argmax(-1) != self.venv.stats.spec.empty_index
+        return x0, (present[..., None] & adapted).float()
+
     def train(self, rollout: TensorDict) -> dict[str, float]:
         cfg, venv = self.config, self.venv
         steps = self.stochastic_steps()[-cfg.gradient_steps:]
         b = rollout.batch_size[0]
         infos = []
         task, floor_weight, contact = self.task_reward(), self.floor_weight(), self.contact()
+        best = self.best_of_floor(rollout) if cfg.best_of_floor_weight > 0 else None
+        if best is not None:
+            low, high = cfg.best_of_floor_t
+            t = rollout["t"][0].reshape(len(rollout["t"][0]), -1)[:, 0]
+            chosen = torch.nonzero((t >= low) & (t <= high)).reshape(-1)
+            finals, weights = self.final_rooms(rollout)
         self.policy.model.eval()
         for _ in range(cfg.num_inner_epochs):
             perm = torch.randperm(b, generator=self.generator)
@@ -208,6 +235,16 @@ class PhysicsGradient(DDPO):
                     surrogate, values, size = task_surrogate(task[0], x0_hat, venv.stats, floors)
                     loss = loss - task[1] * surrogate / len(floors)
                     info.update(task=values.mean().item(), task_gradient=size / len(floors))
+                if best is not None and best[rows].any():
+                    picked = rows[best[rows]]
+                    ranked = rollout[picked][:, chosen].reshape(-1).to(self.device)
+                    x0_hat = self.policy.predict_x0(ranked["x_t"], ranked["t"], ranked["floor"],
+                                                    ranked.get("classes", None), straight_through=True)
+                    target, w = finals[picked].repeat_interleave(len(chosen), 0), weights[picked]
+                    w = w.repeat_interleave(len(chosen), 0)
+                    square = ((x0_hat - target.to(x0_hat)).square() * w).sum() / w.sum().clamp_min(1)
+                    loss = loss + cfg.best_of_floor_weight * square
+                    info["best_of_floor_square"] = square.item()
                 if cfg.kl_coef > 0:  # anchored to the reference: what already passes is not pushed further
                     kl = self.kl_to_base(mb)
                     loss = loss + cfg.kl_coef * kl
@@ -218,7 +255,8 @@ class PhysicsGradient(DDPO):
                 grad_norm = torch.nn.utils.clip_grad_norm_(self.policy.trainable_parameters(), cfg.max_grad_norm)
                 self.optimizer.step()
                 infos.append({**info, "loss": loss.item(), "grad_norm": float(grad_norm)})
-        stats = {key: float(np.mean([i[key] for i in infos])) for key in infos[0]}
+        stats = {key: float(np.mean([i[key] for i in infos if key in i]))
+                 for key in dict.fromkeys(k for i in infos for k in i)}
         if task is not None and not self.checked_task_gradient:  # once, on the first update's scenes
             self.checked_task_gradient = True
             if stats["task_gradient"] == 0:

@@ -2,6 +2,11 @@
 along the bed's forward ray), for each scene file's first bed-TV stand pair.
 
     .venv/bin/python research/tv_bed_facing.py NAME=S.json [NAME=S.json ...]
+    .venv/bin/python research/tv_bed_facing.py --same-floors S0.json S1.json ...   # samplings of the same floors
+
+With ``--same-floors``, the floors by how many of the samplings face their bed to less than 2.3 m of floor, and the
+success of the samplings whose facing differs from floor to floor, by the way they face: whether the floor or the
+sampling's noise chooses.
 
 A room whose bed faces a wall less than about 2.3 m away cannot pass by moving furniture (TV stand centre 2 m
 from the bed's, inside the room): only a bed turned towards the room's long side can.
@@ -22,6 +27,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from iarcs_env.datasets import load_layouts  # noqa: E402
 from iarcs_env.tasks import task_results  # noqa: E402
 
+NARROW = 2.3
+"""m of floor ahead of the bed under which tv_from_bed nearly never passes."""
 BANDS = [(0.0, 2.0), (2.0, 2.3), (2.3, 2.6), (2.6, 3.0), (3.0, math.inf)]
 
 
@@ -65,10 +72,33 @@ def long_side(layout) -> float:
     return float(np.hypot(np.diff(x), np.diff(z))[:2].max())
 
 
+def same_floors(paths) -> None:
+    """Print how the samplings ``paths`` (scene files of the same floors, in the same order) face their beds."""
+    ahead, ok = [], []
+    for path in paths:
+        layouts = load_layouts(path, "bedroom")
+        ahead.append([room_ahead(lay) or 0.0 for lay in layouts])
+        ok.append(task_results("tv_from_bed", layouts).astype(bool))
+    narrow, ok = np.array(ahead) < NARROW, np.array(ok)
+    count = narrow.sum(0)
+    print(f"floors by how many of the {len(paths)} samplings face the bed to less than {NARROW} m of floor:")
+    for k in range(len(paths) + 1):
+        if (count == k).any():
+            print(f"  {k}: {int((count == k).sum())} floors, tv_from_bed {ok[:, count == k].mean():.1%}")
+    mixed = (count > 0) & (count < len(paths))
+    print(f"floors whose samplings differ: tv_from_bed {ok[:, mixed][~narrow[:, mixed]].mean():.1%} where the bed "
+          f"faces {NARROW} m or more, {ok[:, mixed][narrow[:, mixed]].mean():.1%} where less")
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("files", nargs="+", help="NAME=FILE: bedroom scene files")
-    for item in parser.parse_args().files:
+    parser.add_argument("--same-floors", action="store_true", help="the files are samplings of the same floors")
+    args = parser.parse_args()
+    if args.same_floors:
+        same_floors([item.rpartition("=")[2] for item in args.files])
+        return
+    for item in args.files:
         name, _, path = item.rpartition("=")
         layouts = load_layouts(path, "bedroom")
         print(f"{name or path}: tv_from_bed {task_results('tv_from_bed', layouts).mean():.1%}")

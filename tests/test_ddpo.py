@@ -359,6 +359,38 @@ def test_descent_imitation_moves_its_predictions_by_the_descent_of_its_rooms_and
         make_model(DescentImitation, descent_steps=0)
 
 
+def test_best_of_floor_draws_the_mid_noise_predictions_of_each_floors_best_rollout_to_its_room():
+    """Of each floor's group of rollouts the one of highest reward is picked; an update takes the adapter's clean-scene
+    predictions at that rollout's states of the chosen timesteps towards the room the rollout ended in."""
+    prior = tiny_prior()
+    prior.schedule = NoiseSchedule(prediction_type="sample")
+    model = PhysicsGradient(DiffusionPolicy(prior, num_steps=STEPS), make_env(), verbose=0, learning_rate=1e-2,
+                            minibatch_size=8, samples_per_floor=4, gradient_steps=1, overlap_weight=0.0,
+                            out_of_bound_weight=0.0, best_of_floor_weight=1.0, best_of_floor_t=[300, 900])
+    rollout = model.collect_rollouts()
+    best = model.best_of_floor(rollout)
+    reward, floor = rollout["reward"][:, 0], rollout["floor_index"][:, 0]
+    for group in floor.unique():
+        members = floor == group
+        assert best[members].sum() == 1 and reward[best & members] == reward[members].max()
+    t = rollout["t"][0].reshape(STEPS, -1)[:, 0]
+    chosen = torch.nonzero((t >= 300) & (t <= 900)).reshape(-1)
+    assert 0 < len(chosen) < STEPS
+    finals, weights = model.final_rooms(rollout)
+    states = rollout[best][:, chosen].reshape(-1)
+
+    def missed():
+        with torch.no_grad():
+            x0_hat = model.policy.predict_x0(states["x_t"], states["t"], states["floor"])
+        w = weights[best].repeat_interleave(len(chosen), 0)
+        return float(((x0_hat - finals[best].repeat_interleave(len(chosen), 0)).square() * w).sum() / w.sum())
+
+    before = missed()
+    for _ in range(30):
+        info = model.train(rollout)
+    assert missed() < 0.5 * before and info["best_of_floor_square"] > 0
+
+
 LOW_TOPS = ("def reward(scene):\n"
             "    return scene.mean_of(scene.below(scene.top_height, 0.4, scale=0.3), scene.present)\n")
 
