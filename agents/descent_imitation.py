@@ -36,7 +36,7 @@ from iarcs_env.clearance import clearance_of_points, reach_points
 from iarcs_env.scene import decode_geometry, floor_half_extents, translation_scale
 
 from . import distributed
-from .physics_gradient import PhysicsGradient, layout_penalty, penalty_weights
+from .physics_gradient import PhysicsGradient, adapted_object_weights, layout_penalty, penalty_weights
 
 DESCENT_LR = 0.01
 """m: Adam's step on the objects' positions."""
@@ -119,9 +119,7 @@ class DescentImitation(PhysicsGradient):
         given = "classes" in last.keys()
         x0 = policy.prior.with_clean_classes(last["action"], last["classes"]) if given else last["action"]
         move, info = self.targets(x0, floors)
-        keep = policy.reference_features(policy.adapter)
-        adapted = torch.ones(move.shape[-1], dtype=torch.bool) if keep is None else ~keep
-        weight = ((x0[..., 8:].argmax(-1) != venv.stats.spec.empty_index)[..., None] & adapted).float()
+        weight = adapted_object_weights(policy, x0)
         info["move_square"] = float((move.square() * weight).sum() / weight.sum().clamp_min(1))
         states = rollout[:, -cfg.gradient_steps:].reshape(-1).to(self.device)  # the states the policy visited
 

@@ -156,6 +156,15 @@ def task_surrogate(task_reward, x0: torch.Tensor, stats, floors) -> tuple[torch.
     return surrogate, values, float(sum(g.abs().sum() for g in grad.values()))
 
 
+def adapted_object_weights(policy, x0: torch.Tensor) -> torch.Tensor:
+    """(B, N, F) weights of a regression onto rooms ``x0`` (model features): 1 on the features the policy's adapter
+    adapts, of the objects present."""
+    keep = policy.reference_features(policy.adapter)
+    adapted = torch.ones(x0.shape[-1], dtype=torch.bool) if keep is None else ~keep
+    present = x0[..., 8:].argmax(-1) != policy.prior.stats.spec.empty_index
+    return (present[..., None] & adapted).float()
+
+
 class PhysicsGradient(DDPO):
     """The physics gradient (module doc) with :class:`DDPO`'s surface: ``learn``, ``save``/``load``,
     callbacks. Uses ``learning_rate``, ``minibatch_size``, ``num_inner_epochs``, ``max_grad_norm``,
@@ -171,6 +180,9 @@ class PhysicsGradient(DDPO):
         if self.config.gradient_steps < 1:
             raise ValueError(f"gradient_steps must be at least 1 (the last steps whose x0_hat gets the gradient); "
                              f"got {self.config.gradient_steps}")
+        if self.config.best_of_floor_weight > 0 and not len(self.best_of_floor_steps()):
+            raise ValueError(f"best_of_floor_t {self.config.best_of_floor_t} holds none of the chain's timesteps "
+                             f"({', '.join(str(int(t)) for t in self.venv.timesteps)}); widen it")
         self.checked_task_gradient = False
 
     def floor_weight(self) -> float:
@@ -196,17 +208,20 @@ class PhysicsGradient(DDPO):
             best[members[reward[members].argmax()]] = True
         return best
 
+    def best_of_floor_steps(self) -> torch.Tensor:
+        """Indices of the chain's steps whose timestep lies in ``best_of_floor_t`` (inclusive)."""
+        low, high = self.config.best_of_floor_t
+        t = torch.as_tensor(self.venv.timesteps)
+        return torch.nonzero((t >= low) & (t <= high)).reshape(-1)
+
     def final_rooms(self, rollout: TensorDict) -> tuple[torch.Tensor, torch.Tensor]:
         """The rooms the rollout's chains ended in (B, N, F; given classes in place) and the weights (B, N, F) of a
-        regression onto them: 1 on the adapted features of the objects present."""
+        regression onto them (:func:`adapted_object_weights`)."""
         last = rollout[:, -1]
         x0 = last["action"].clamp(-1, 1)
         if "classes" in last.keys():
             x0 = self.policy.prior.with_clean_classes(x0, last["classes"])
-        keep = self.policy.reference_features(self.policy.adapter)
-        adapted = torch.ones(x0.shape[-1], dtype=torch.bool) if keep is None else ~keep
-        present = x0[..., 8:].argmax(-1) != self.venv.stats.spec.empty_index
-        return x0, (present[..., None] & adapted).float()
+        return x0, adapted_object_weights(self.policy, x0)
 
     def train(self, rollout: TensorDict) -> dict[str, float]:
         cfg, venv = self.config, self.venv
@@ -216,9 +231,7 @@ class PhysicsGradient(DDPO):
         task, floor_weight, contact = self.task_reward(), self.floor_weight(), self.contact()
         best = self.best_of_floor(rollout) if cfg.best_of_floor_weight > 0 else None
         if best is not None:
-            low, high = cfg.best_of_floor_t
-            t = rollout["t"][0].reshape(len(rollout["t"][0]), -1)[:, 0]
-            chosen = torch.nonzero((t >= low) & (t <= high)).reshape(-1)
+            chosen = self.best_of_floor_steps()
             finals, weights = self.final_rooms(rollout)
         self.policy.model.eval()
         for _ in range(cfg.num_inner_epochs):

@@ -30,7 +30,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from agents import policy as policy_module  # noqa: E402
 from agents.denoiser import centre_floor  # noqa: E402
-from agents.physics_gradient import penalty_weights, physics_penalty  # noqa: E402
+from agents.physics_gradient import adapted_object_weights, penalty_weights, physics_penalty  # noqa: E402
 from agents.train import ADAPTERS_DIR, build, load_train_config  # noqa: E402
 from iarcs_env.datasets.procedural import generate_layouts  # noqa: E402
 from iarcs_env.env import default_floors  # noqa: E402
@@ -72,7 +72,7 @@ def main(argv=None) -> None:
         x_in, cond, target = descended_rooms(cfg, algo, policy, args.rooms, generator)
         if args.cache:
             torch.save({"x_in": x_in, "cond": cond, "target": target}, args.cache[0])
-    weight = adapted_objects(policy, target)
+    weight = adapted_object_weights(policy, target)
     t0 = torch.zeros(len(x_in), dtype=torch.long)
 
     other = held_out_floors(cfg.room, args.other_floors)
@@ -111,13 +111,6 @@ def build_with_targets(cfg, lora_targets: str | None = None):
 def load_rooms(paths) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """The x_in, cond and target of the cache files ``paths``, their rooms together in the files' order."""
     return tuple(torch.cat(parts) for parts in zip(*(torch.load(p).values() for p in paths)))
-
-
-def adapted_objects(policy, target: torch.Tensor) -> torch.Tensor:
-    """(B, N, F) weights of the regression: 1 on the adapted features of the objects present in ``target``."""
-    keep = policy.reference_features(policy.adapter)
-    adapted = torch.ones(target.shape[-1], dtype=torch.bool) if keep is None else ~keep
-    return ((target[..., 8:].argmax(-1) != policy.prior.stats.spec.empty_index)[..., None] & adapted).float()
 
 
 def held_out_floors(room: str, count: int) -> list:

@@ -27,8 +27,9 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # its sibling script
 
 from agents.denoiser import SceneDenoiser  # noqa: E402
+from agents.physics_gradient import adapted_object_weights  # noqa: E402
 from agents.train import ADAPTERS_DIR, load_train_config  # noqa: E402
-from descent_offline import adapted_objects, build_with_targets, load_rooms  # noqa: E402
+from descent_offline import build_with_targets, load_rooms  # noqa: E402
 
 
 def explained(pred: torch.Tensor, move: torch.Tensor, weight: torch.Tensor) -> float:
@@ -65,7 +66,7 @@ def main(argv=None) -> None:
     with policy.base_policy():
         x0 = predictions(policy.predict_x0, x_in, cond).clamp(-1, 1)
     move = target - x0
-    weight = adapted_objects(policy, target)
+    weight = adapted_object_weights(policy, target)
     generator = torch.Generator().manual_seed(0)
     train, held = torch.arange(len(x_in) - held_count), torch.arange(len(x_in) - held_count, len(x_in))
     print(f"{len(train)} rooms to train on, {len(held)} held out; the move's mean square "

@@ -429,3 +429,29 @@ def test_descent_fit_takes_the_batch_towards_its_moves_and_samples_other_floors(
     after = float(lines[1].split("miss ", 1)[1].split(",")[0])
     assert after < before
     assert "4 other floors, with the adapter: penalty" in lines[2] and "the prior: penalty" in lines[3]
+
+
+def test_task_by_floor_and_same_floors_tell_the_floors_choice_from_the_samplings(tmp_path, capsys):
+    """research/task_by_floor.py and tv_bed_facing.py --same-floors on two samplings of two floors: on the first the
+    bed faces the room's length (passes) in one sampling and a wall 2 m away (fails) in the other; the second holds
+    no TV stand in either."""
+    import math
+
+    from iarcs_env.datasets import save_layouts
+
+    long = [(0, 0), (3, 0), (3, 6), (0, 6)]
+    wide = [box("double_bed", 1.5, 1.0, 0.9, 1.0), box("tv_stand", 1.5, 4.0, 0.6, 0.2, yaw=math.pi)]
+    narrow = [box("double_bed", 1.0, 3.0, 0.9, 1.0, yaw=math.pi / 2),
+              box("tv_stand", 2.75, 3.0, 0.6, 0.2, yaw=-math.pi / 2)]
+    empty = [box("double_bed", 1.5, 1.0, 0.9, 1.0)]
+    for name, first in (("s0", wide), ("s1", narrow)):
+        save_layouts([make_layout(first, floor=long), make_layout(empty, floor=long)], tmp_path / f"{name}.json")
+    files = [str(tmp_path / "s0.json"), str(tmp_path / "s1.json")]
+    load("task_by_floor").main(["tv_from_bed", *files])
+    out = capsys.readouterr().out
+    assert "25.0% of 4 rooms pass" in out and "  0: 1 floors" in out and "  1: 1 floors" in out
+    assert "best of 2): 50.0%" in out
+    load("tv_bed_facing").same_floors(files)
+    out = capsys.readouterr().out
+    assert "  1: 1 floors, tv_from_bed 50.0%" in out and "  2: 1 floors, tv_from_bed 0.0%" in out
+    assert "tv_from_bed 100.0% where the bed faces 2.3 m or more, 0.0% where less" in out

@@ -373,9 +373,8 @@ def test_best_of_floor_draws_the_mid_noise_predictions_of_each_floors_best_rollo
     for group in floor.unique():
         members = floor == group
         assert best[members].sum() == 1 and reward[best & members] == reward[members].max()
-    t = rollout["t"][0].reshape(STEPS, -1)[:, 0]
-    chosen = torch.nonzero((t >= 300) & (t <= 900)).reshape(-1)
-    assert 0 < len(chosen) < STEPS
+    chosen = model.best_of_floor_steps()
+    assert 0 < len(chosen) < STEPS and all(300 <= model.venv.timesteps[i] <= 900 for i in chosen)
     finals, weights = model.final_rooms(rollout)
     states = rollout[best][:, chosen].reshape(-1)
 
@@ -389,6 +388,8 @@ def test_best_of_floor_draws_the_mid_noise_predictions_of_each_floors_best_rollo
     for _ in range(30):
         info = model.train(rollout)
     assert missed() < 0.5 * before and info["best_of_floor_square"] > 0
+    with pytest.raises(ValueError, match="best_of_floor_t .* holds none of the chain's timesteps"):
+        make_model(PhysicsGradient, best_of_floor_weight=1.0, best_of_floor_t=[10, 20])
 
 
 LOW_TOPS = ("def reward(scene):\n"
