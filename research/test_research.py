@@ -455,3 +455,15 @@ def test_task_by_floor_and_same_floors_tell_the_floors_choice_from_the_samplings
     out = capsys.readouterr().out
     assert "  1: 1 floors, tv_from_bed 50.0%" in out and "  2: 1 floors, tv_from_bed 0.0%" in out
     assert "tv_from_bed 100.0% where the bed faces 2.3 m or more, 0.0% where less" in out
+
+
+def test_back_to_wall_measures_from_the_back_edge(capsys):
+    """research/back_to_wall.py: a wardrobe facing into the room with its back on the wall is 0 m from it; one turned
+    round, its back 0.6 m into the room, is 0.6 m away."""
+    import math
+
+    script = load("back_to_wall")
+    on_wall = box("wardrobe", 2.0, 0.3, 0.5, 0.3)                  # faces +z, back edge at z = 0
+    turned = box("wardrobe", 2.0, 0.3, 0.5, 0.3, yaw=math.pi)      # faces -z, back edge at z = 0.6
+    d = script.back_distances([make_layout([on_wall, turned, box("bed", 2.0, 2.0, 0.5, 0.5)])], "wardrobe")
+    assert np.allclose(d, [0.0, 0.6])
