@@ -457,13 +457,18 @@ def test_task_by_floor_and_same_floors_tell_the_floors_choice_from_the_samplings
     assert "tv_from_bed 100.0% where the bed faces 2.3 m or more, 0.0% where less" in out
 
 
-def test_back_to_wall_measures_from_the_back_edge(capsys):
+def test_back_to_wall_measures_from_the_back_edge_along_the_objects_axis():
     """research/back_to_wall.py: a wardrobe facing into the room with its back on the wall is 0 m from it; one turned
-    round, its back 0.6 m into the room, is 0.6 m away."""
+    round, its back 0.6 m into the room, is 0.6 m away; one standing sideways along a wall is as far as the nearest
+    wall on its own front-back axis (the relation's measure), not as near as the wall beside it."""
     import math
 
     script = load("back_to_wall")
     on_wall = box("wardrobe", 2.0, 0.3, 0.5, 0.3)                  # faces +z, back edge at z = 0
     turned = box("wardrobe", 2.0, 0.3, 0.5, 0.3, yaw=math.pi)      # faces -z, back edge at z = 0.6
-    d = script.back_distances([make_layout([on_wall, turned, box("bed", 2.0, 2.0, 0.5, 0.5)])], "wardrobe")
-    assert np.allclose(d, [0.0, 0.6])
+    sideways = box("wardrobe", 2.5, 0.5, 0.5, 0.3, yaw=math.pi / 2)  # faces +x along the z = 0 wall, back at x = 2.2
+    d = script.back_distances([make_layout([on_wall, turned, sideways, box("double_bed", 3.0, 2.0, 0.5, 0.5)])],
+                              "wardrobe")
+    # the sideways one: 1.8 m to the x = 4 wall, the nearest on its axis (the relation looks both ways along it),
+    # though the wall beside it is 0.5 m away
+    assert np.allclose(d, [0.0, 0.6, 1.8])
