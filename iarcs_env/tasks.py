@@ -159,13 +159,18 @@ WHEELCHAIR_RADIUS, TURNING_RADIUS, TURNING_NEAR_BED = 0.45, 0.75, 0.5
 def check_wheelchair(batch: SceneBatch) -> np.ndarray:
     """wheelchair: every ground object reachable with agent radius 0.45 m, and a disk of radius 0.75 m
     on free floor with its edge within 0.5 m of a bed."""
+    reached, circle = wheelchair_parts(batch)
+    return _out((reached | ~batch.ground_mask).all(1).cpu() & circle)
+
+
+def wheelchair_parts(batch: SceneBatch) -> tuple[torch.Tensor, torch.Tensor]:
+    """The two halves of :func:`check_wheelchair`: ``(B, N)`` the ground objects a wheelchair reaches, ``(B,)``
+    whether its turning disk fits by a bed."""
     t, h, y = _geometry(batch)
     ground = batch.ground_mask
     paths = rel.free_grid(batch.floors, t, h, y, ground, radius=WHEELCHAIR_RADIUS)
-    reached = (rel.reachable(paths, ground) | ~ground).all(1)
     turning = rel.free_grid(batch.floors, t, h, y, ground, radius=TURNING_RADIUS, reach=False)
-    circle = rel.free_disk(turning, t, h, y, _mask(batch, "bed"), TURNING_NEAR_BED)
-    return _out(reached.cpu() & circle)
+    return rel.reachable(paths, ground), rel.free_disk(turning, t, h, y, _mask(batch, "bed"), TURNING_NEAR_BED)
 
 
 TASKS: dict[str, Task] = {task.name: task for task in [

@@ -19,7 +19,6 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from iarcs_env import relations as rel  # noqa: E402
 from iarcs_env import tasks  # noqa: E402
 from iarcs_env.datasets import load_layouts  # noqa: E402
 from iarcs_env.metrics import batch_float64  # noqa: E402
@@ -39,13 +38,10 @@ def halves(layouts: list[Layout], chunk: int = 100) -> dict:
     for s in range(0, len(layouts), chunk):
         part = layouts[s:s + chunk]
         batch = batch_float64(part)
-        t, h, y = tasks._geometry(batch)
         ground = batch.ground_mask
-        paths = rel.free_grid(batch.floors, t, h, y, ground, radius=tasks.WHEELCHAIR_RADIUS)
-        reached = rel.reachable(paths, ground)
+        reached, found = tasks.wheelchair_parts(batch)
         reached_all.append((reached | ~ground).all(1).cpu().numpy())
-        turning = rel.free_grid(batch.floors, t, h, y, ground, radius=tasks.TURNING_RADIUS, reach=False)
-        disk.append(np.asarray(rel.free_disk(turning, t, h, y, tasks._mask(batch, "bed"), tasks.TURNING_NEAR_BED)))
+        disk.append(np.asarray(found))
         for k, lay in enumerate(part):
             unreached.update(lay.labels[i] for i in np.nonzero((ground[k] & ~reached[k]).cpu().numpy())[0])
     return {"reach": np.concatenate(reached_all), "disk": np.concatenate(disk), "unreached": unreached}
