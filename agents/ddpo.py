@@ -110,12 +110,6 @@ class DDPOConfig:
     towards the group's best (reward-ranked fine-tuning, RAFT, on the policy's own states)."""
     best_of_floor_t: list = field(default_factory=lambda: [250, 450])
     """``physics-gradient`` only: the range of timesteps [low, high] whose states ``best_of_floor_weight`` uses."""
-    layout_search: str = ""
-    """``physics-gradient`` only, with ``best_of_floor_weight``: a task with a layout search
-    (:mod:`agents.layout_search`: wheelchair). Each rollout's final room, its furniture rearranged by the search, is
-    the target of that rollout's predictions at ``best_of_floor_t`` (every rollout, not only each floor's best): a
-    layout the task's gradient cannot climb to (a path opens only once it is wide enough) drawn on at the steps
-    that choose it."""
     descent_steps: int = 300
     """``descent-imitation`` only (agents/descent_imitation.py): the Adam steps that move each rollout's rooms down
     the physics penalty before the adapter learns them."""

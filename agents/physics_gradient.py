@@ -54,7 +54,6 @@ from rewards.universal import class_pairs, contact_pairs
 
 from . import distributed
 from .ddpo import DDPO, DDPOConfig
-from .layout_search import SCORES, search_rooms
 
 CONTACT_REACH = CHAIR_GAP
 """m: a pair of the collision reward's ``contact`` classes whose bounds are closer than this is drawn together by
@@ -184,11 +183,6 @@ class PhysicsGradient(DDPO):
         if self.config.best_of_floor_weight > 0 and not len(self.best_of_floor_steps()):
             raise ValueError(f"best_of_floor_t {self.config.best_of_floor_t} holds none of the chain's timesteps "
                              f"({', '.join(str(int(t)) for t in self.venv.timesteps)}); widen it")
-        if self.config.layout_search and (self.config.layout_search not in SCORES
-                                          or self.config.best_of_floor_weight <= 0):
-            raise ValueError(f"layout_search {self.config.layout_search!r} needs best_of_floor_weight > 0 (the weight "
-                             f"of the regression onto the searched rooms) and a task with a search: "
-                             f"{', '.join(SCORES)}")
         self.checked_task_gradient = False
 
     def floor_weight(self) -> float:
@@ -229,18 +223,6 @@ class PhysicsGradient(DDPO):
             x0 = self.policy.prior.with_clean_classes(x0, last["classes"])
         return x0, adapted_object_weights(self.policy, x0)
 
-    def searched_rooms(self, x0: torch.Tensor, rollout: TensorDict) -> torch.Tensor:
-        """Rooms ``x0`` (B, N, F) of the rollout with their objects' positions and yaws rearranged by the layout
-        search of ``layout_search`` (:func:`agents.layout_search.search_rooms`)."""
-        floors = [self.venv.floors[int(i)] for i in rollout["floor_index"][:, 0]]
-        scenes = search_rooms(SceneBatch.decode(x0, self.venv.stats, floors), self.config.layout_search)
-        moved = SceneBatch(scenes.spec, scenes.labels, scenes.translations.float(), scenes.half_sizes.float(),
-                           scenes.yaws.float(), floors).encode(self.venv.stats)
-        out, held = x0.clone(), scenes.mask[..., None]
-        out[..., 0:3] = torch.where(held, moved[..., 0:3], x0[..., 0:3])
-        out[..., 6:8] = torch.where(held, moved[..., 6:8], x0[..., 6:8])
-        return out
-
     def train(self, rollout: TensorDict) -> dict[str, float]:
         cfg, venv = self.config, self.venv
         steps = self.stochastic_steps()[-cfg.gradient_steps:]
@@ -251,8 +233,6 @@ class PhysicsGradient(DDPO):
         if best is not None:
             chosen = self.best_of_floor_steps()
             finals, weights = self.final_rooms(rollout)
-            if cfg.layout_search:
-                finals, best = self.searched_rooms(finals, rollout), torch.ones_like(best)
         self.policy.model.eval()
         for _ in range(cfg.num_inner_epochs):
             perm = torch.randperm(b, generator=self.generator)

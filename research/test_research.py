@@ -496,3 +496,52 @@ def test_task_descent_moves_a_tv_stand_out_to_where_the_bed_sees_it(tmp_path, ca
     bed, stand = (moved.translations[moved.labels.index(c)] for c in ("double_bed", "tv_stand"))
     assert np.hypot(*(stand - bed)[0:3:2]) >= 2.0
     assert evaluate_layouts([moved])["Col_obj"] == 0
+
+
+# --- layout_search.py ----------------------------------------------------------------------------------------------
+search = load("layout_search")
+SQUARE = [(0, 0), (4, 0), (4, 4), (0, 4)]
+
+
+def boxed_in():
+    """A double bed against the z = 0 wall with a nightstand between it and the x = 0 wall: a 0.5 m gap, where a
+    wheelchair (0.9 m) does not reach the nightstand; a wardrobe on the far wall."""
+    return make_layout([box("double_bed", 1.4, 1.0, 0.9, 1.0), box("nightstand", 0.25, 0.25, 0.25, 0.25),
+                        box("wardrobe", 3.0, 3.7, 0.6, 0.3, yaw=np.pi)], floor=SQUARE)
+
+
+def test_layout_search_frees_a_boxed_in_nightstand_with_the_rooms_own_furniture_on_the_floor_and_clear():
+    from iarcs_env.metrics import batch_float64, evaluate_layouts
+    from iarcs_env.tasks import task_results
+
+    room = boxed_in()
+    assert not task_results("wheelchair", [room])[0] and search.wheelchair_score(batch_float64([room]))[0] < 3
+    (moved,) = search.search_room(batch_float64([room]), "wheelchair").to_layouts()
+    assert task_results("wheelchair", [moved])[0]
+    assert moved.labels == room.labels and np.allclose(moved.half_sizes, room.half_sizes)
+    metrics = evaluate_layouts([moved])
+    assert metrics["Col_obj"] == 0 and metrics["R_out"] == 0
+    # what passes already stays where it is
+    again = search.search_room(batch_float64([moved]), "wheelchair")
+    np.testing.assert_allclose(again.to_layouts()[0].translations, moved.translations, atol=1e-9)
+
+
+def test_layout_search_rooms_keeps_the_batch_and_rejects_tasks_without_a_search():
+    from iarcs_env.metrics import batch_float64
+    from iarcs_env.tasks import task_results
+
+    batch = batch_float64([boxed_in(), boxed_in()])
+    out = search.search_rooms(batch, "wheelchair")
+    assert len(out) == 2 and torch.equal(out.labels, batch.labels) and task_results("wheelchair", out).all()
+    with pytest.raises(ValueError, match="no layout search for task 'tv_from_bed'; tasks with one: wheelchair"):
+        search.search_room(batch[[0]], "tv_from_bed")
+
+
+def test_wheelchair_search_reports_the_rooms_before_and_after(tmp_path, capsys):
+    from iarcs_env.datasets import load_layouts, save_layouts
+    from iarcs_env.tasks import task_results
+
+    save_layouts([boxed_in()], tmp_path / "s.json")
+    load("wheelchair_search").main([str(tmp_path / "s.json"), "--out", str(tmp_path / "w.json")])
+    assert "1 rooms: wheelchair passes 0.0% -> 100.0%" in capsys.readouterr().out
+    assert task_results("wheelchair", load_layouts(tmp_path / "w.json", "bedroom")).all()

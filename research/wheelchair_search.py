@@ -1,5 +1,5 @@
 """Could a room pass wheelchair with its own furniture, each object placed anywhere on its floor? The greedy layout
-search of :mod:`agents.layout_search` (no network, no gradient), scored by the checker's two halves (the turning disk
+search of ``layout_search.py`` (no network, no gradient), scored by the checker's two halves (the turning disk
 by a bed 2, then the share of ground objects a wheelchair reaches). Classes, sizes and heights are kept, so it bounds
 from below what an adapter that only moves and turns (``adapt: [position, yaw]``) could reach on these rooms: a
 greedy search misses layouts that need two objects moved at once.
@@ -18,8 +18,9 @@ import numpy as np
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from agents.layout_search import search_room, wheelchair_score  # noqa: E402
+from layout_search import search_room, wheelchair_score  # noqa: E402
 from iarcs_env.datasets import load_layouts, save_layouts  # noqa: E402
 from iarcs_env.metrics import batch_float64  # noqa: E402
 

@@ -4,8 +4,8 @@ of free-space tests that the reward's gradient cannot climb (wheelchair: a path 
 Largest footprint first, ``sweeps`` times over the room, every placement of an object on a ``grid`` m grid of the
 floor's bounds in its four wall-aligned turns that stays on the floor (R_out's test) and collides with no other ground
 object (Col_obj's test) is scored by the task's :data:`SCORES` function, and the best is kept when it beats the room
-as it stands. Classes, sizes and heights are kept. Used as the target of ``ddpo.layout_search``
-(:mod:`agents.physics_gradient`); ``research/wheelchair_search.py`` measures what it reaches.
+as it stands. Classes, sizes and heights are kept. ``wheelchair_search.py`` measures what it reaches,
+``search_sft.py`` whether an adapter learns its rooms.
 """
 
 from __future__ import annotations
