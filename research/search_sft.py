@@ -1,10 +1,12 @@
 """Can an adapter learn the searched rooms? A task config's adapter (stage 1's, the config's required classes given)
-fine-tuned offline with the denoising loss on rooms the greedy layout search rearranged (``research/layout_search.py``):
-the adapter's rooms on ``--rooms`` training floors (the config's floor seed), searched once (``--cache``), then
+fine-tuned offline with the denoising loss on rooms the greedy layout search rearranged (``layout_search.py``): the
+adapter's rooms on ``--rooms`` training floors (the config's floor seed), searched once (``--cache``), then
 ``--steps`` steps of ``--batch`` rooms, each noised to a uniform timestep, x0_hat regressed onto the searched room
-(its adapted features). Supervised fine-tuning on the search's rooms (expert iteration with the search as the expert),
-where ``ddpo.layout_search`` (commit 2e040aa, not kept) regressed the policy's own noisy states. Every ``--eval-every`` steps: the task's success
-on ``--other-floors`` held-out floors (seed 4242). Writes a run folder that ``iarcs sample --checkpoint`` reads.
+(its adapted features): supervised fine-tuning with the search as the expert, where ``ddpo.layout_search`` (commit
+2e040aa, not kept) regressed the policy's own noisy states. At the start and every ``--eval-every`` steps: the
+task's success on ``--other-floors`` held-out floors (seed 4242), at the start also on as many of its own training
+floors (``--init RUN --steps 0`` only measures RUN's adapter). Writes a run folder that ``iarcs sample
+--checkpoint`` reads.
 
     .venv/bin/python research/search_sft.py experiments/ablations/task_wheelchair_gradient.yaml --task wheelchair \\
         --rooms 1024 --steps 1500 --cache ROOMS.pt --out RUN
@@ -87,7 +89,9 @@ def main(argv=None) -> None:
     x0, cond, classes = rooms.encode(prior.stats), prior.floor_condition(floors), rooms.labels
     weight = adapted_object_weights(policy, x0)
     other = [lay.centred().floor for lay in generate_layouts(cfg.room, args.other_floors, seed=4242)]
-    print(f"step 0: {args.task} on {len(other)} other floors {success(policy, other, args.task):.1%}", flush=True)
+    own = floors[:args.other_floors]
+    print(f"step 0: {args.task} on {len(other)} other floors {success(policy, other, args.task):.1%}, on the first "
+          f"{len(own)} of its training floors {success(policy, own, args.task):.1%}", flush=True)
     optimizer = torch.optim.Adam(policy.trainable_parameters(), lr=args.lr)
     schedule = policy.schedule
     policy.model.eval()
