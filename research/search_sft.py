@@ -37,6 +37,26 @@ from iarcs_env.tasks import task_results  # noqa: E402
 CHUNK = 64
 
 
+FIELDS = ("labels", "translations", "half_sizes", "yaws")
+
+
+def training_floors(room: str, count: int, seed: int) -> list:
+    return [lay.centred().floor for lay in generate_layouts(room, count, seed=seed)]
+
+
+def cat(batches: list[SceneBatch]) -> SceneBatch:
+    """One batch of ``batches``' rooms (float32 geometry)."""
+    return SceneBatch(batches[0].spec, *(torch.cat([getattr(b, k) for b in batches]).to(
+        torch.long if k == "labels" else torch.float32) for k in FIELDS), [f for b in batches for f in b.floors])
+
+
+def cached_rooms(path: str, spec, cfg) -> SceneBatch:
+    """The searched rooms of a ``--cache`` file, on their floors (regenerated from the seed it records)."""
+    fields = torch.load(path)
+    floors = training_floors(cfg.room, len(fields["labels"]), fields.get("floor_seed", cfg.floor_seed))
+    return SceneBatch(spec, *(fields[k] for k in FIELDS), floors)
+
+
 def searched_rooms(policy, floors, task: str, generator) -> SceneBatch:
     """The policy's rooms on ``floors``, rearranged by the layout search for ``task``."""
     out = []
@@ -44,9 +64,7 @@ def searched_rooms(policy, floors, task: str, generator) -> SceneBatch:
         with torch.no_grad():
             batch = policy.sample(floors[i:i + CHUNK], generator)
         out.append(search_rooms(batch, task))
-    return SceneBatch(out[0].spec, torch.cat([b.labels for b in out]), torch.cat([b.translations for b in out]).float(),
-                      torch.cat([b.half_sizes for b in out]).float(), torch.cat([b.yaws for b in out]).float(),
-                      [f for b in out for f in b.floors])
+    return cat(out)
 
 
 def success(policy, floors, task: str) -> float:
@@ -64,7 +82,10 @@ def main(argv=None) -> None:
     parser.add_argument("--lr", type=float, default=1e-3)
     parser.add_argument("--eval-every", type=int, default=250)
     parser.add_argument("--other-floors", type=int, default=64)
-    parser.add_argument("--cache", help="a file for the searched rooms: written once, then read")
+    parser.add_argument("--cache", action="append", default=[],
+                        help="a file for the searched rooms: written once, then read; given more than once, the files' "
+                             "rooms together (each written before by a run of its own)")
+    parser.add_argument("--floor-seed", type=int, help="the training floors' seed (default: the config's)")
     parser.add_argument("--out", help="write a run folder with the trained adapter")
     parser.add_argument("--init", help="a run folder (of --out) whose adapter to start from")
     parser.add_argument("--lora-targets", help="a regular expression of the layers the LoRA adapts, in place of the "
@@ -76,15 +97,17 @@ def main(argv=None) -> None:
     if args.init:
         policy.load_adapter(Path(args.init) / ADAPTERS_DIR / cfg.adapter, cfg.adapter)
     prior, generator = policy.prior, torch.Generator().manual_seed(cfg.seed)
-    floors = [lay.centred().floor for lay in generate_layouts(cfg.room, args.rooms, seed=cfg.floor_seed)]
-    if args.cache and Path(args.cache).exists():
-        fields = torch.load(args.cache)
-        rooms = SceneBatch(prior.spec, fields["labels"], fields["translations"], fields["half_sizes"], fields["yaws"],
-                           floors)
+    if args.cache and all(Path(c).exists() for c in args.cache):
+        rooms = cat([cached_rooms(c, prior.spec, cfg) for c in args.cache])
+    elif len(args.cache) > 1:
+        raise SystemExit(f"missing: {', '.join(c for c in args.cache if not Path(c).exists())} (make each file with "
+                         "a run of its own)")
     else:
-        rooms = searched_rooms(policy, floors, args.task, generator)
+        seed = cfg.floor_seed if args.floor_seed is None else args.floor_seed
+        rooms = searched_rooms(policy, training_floors(cfg.room, args.rooms, seed), args.task, generator)
         if args.cache:
-            torch.save({k: getattr(rooms, k) for k in ("labels", "translations", "half_sizes", "yaws")}, args.cache)
+            torch.save({"floor_seed": seed, **{k: getattr(rooms, k) for k in FIELDS}}, args.cache[0])
+    floors = rooms.floors
     print(f"{len(rooms)} searched rooms: {args.task} {task_results(args.task, rooms).mean():.1%}")
     x0, cond, classes = rooms.encode(prior.stats), prior.floor_condition(floors), rooms.labels
     weight = adapted_object_weights(policy, x0)

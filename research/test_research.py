@@ -545,3 +545,25 @@ def test_wheelchair_search_reports_the_rooms_before_and_after(tmp_path, capsys):
     load("wheelchair_search").main([str(tmp_path / "s.json"), "--out", str(tmp_path / "w.json")])
     assert "1 rooms: wheelchair passes 0.0% -> 100.0%" in capsys.readouterr().out
     assert task_results("wheelchair", load_layouts(tmp_path / "w.json", "bedroom")).all()
+
+
+def test_search_sft_caches_searched_rooms_per_floor_seed_and_trains_on_them_together(tmp_path, capsys):
+    from conftest import perturb_zero_init, write_tiny_train_config
+    from agents.train import load_trained_policy
+
+    config = write_tiny_train_config(tmp_path, algorithm="physics-gradient", adapt=["position", "yaw"])
+    perturb_zero_init(ScenePrior.load(tmp_path / "prior.pt"), 0).save(tmp_path / "prior.pt")  # gradients flow
+    script = load("search_sft")
+    common = [str(config), "--task", "wheelchair", "--rooms", "3", "--other-floors", "2", "--batch", "2"]
+    for seed in (5, 6):
+        script.main(common + ["--floor-seed", str(seed), "--cache", str(tmp_path / f"r{seed}.pt"), "--steps", "0"])
+        assert torch.load(tmp_path / f"r{seed}.pt")["floor_seed"] == seed
+    capsys.readouterr()
+    script.main(common + ["--cache", str(tmp_path / "r5.pt"), "--cache", str(tmp_path / "r6.pt"), "--steps", "2",
+                          "--eval-every", "2", "--out", str(tmp_path / "run")])
+    out = capsys.readouterr().out
+    assert "6 searched rooms: wheelchair" in out and "step 2: loss" in out
+    policy, cfg = load_trained_policy(tmp_path / "run")
+    assert cfg.adapt == ["position", "yaw"]
+    with pytest.raises(SystemExit, match="missing: .*r7.pt"):
+        script.main(common + ["--cache", str(tmp_path / "r5.pt"), "--cache", str(tmp_path / "r7.pt")])
