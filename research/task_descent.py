@@ -77,21 +77,26 @@ def main(argv=None) -> None:
                 return layout_penalty(trans, batch.half_sizes.double(), yaws, batch.labels, batch.spec,
                                       batch.floors, **weights)
 
-            for step in range(args.steps):
+            def placed() -> tuple[torch.Tensor, torch.Tensor]:  # the batch's geometry set to the current move
                 trans, yaws = moved()
                 batch.translations, batch.yaws = trans.detach().float(), yaws.detach().float()
-                values, grad = reward.gradient(batch)
+                return trans, yaws
+
+            def measure() -> tuple:  # (penalty, task reward, task passed) of each room
+                trans, yaws = placed()
+                return penalty(trans, yaws).detach(), reward.gradient(batch)[0], task_results(task, batch)
+
+            before.append(measure())
+            for _ in range(args.steps):
+                trans, yaws = placed()
+                grad = reward.gradient(batch)[1]
                 surrogate = (grad["translations"].double() * trans).sum() + (grad["yaws"].double() * yaws).sum()
                 loss = penalty(trans, yaws).sum() - task_weight * surrogate
-                if step == 0:
-                    before.append((penalty(trans, yaws).detach(), values, task_results(task, batch)))
                 optimizer.zero_grad()
                 loss.backward()
                 optimizer.step()
                 bar.update(len(trans0))
-            trans, yaws = moved()
-            batch.translations, batch.yaws = trans.detach().float(), yaws.detach().float()
-            after.append((penalty(trans, yaws).detach(), reward.gradient(batch)[0], task_results(task, batch)))
+            after.append(measure())
             out += batch.to_layouts()
     save_layouts(out, args.out)
     for name, rows in (("before", before), ("after", after)):
