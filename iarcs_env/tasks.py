@@ -163,13 +163,13 @@ def check_wheelchair(batch: SceneBatch) -> np.ndarray:
     return _out((reached | ~batch.ground_mask).all(1).cpu() & circle)
 
 
-def wheelchair_parts(batch: SceneBatch) -> tuple[torch.Tensor, torch.Tensor]:
+def wheelchair_parts(batch: SceneBatch, margin: float = 0.0) -> tuple[torch.Tensor, torch.Tensor]:
     """The two halves of :func:`check_wheelchair`: ``(B, N)`` the ground objects a wheelchair reaches, ``(B,)``
-    whether its turning disk fits by a bed."""
+    whether its turning disk fits by a bed; with ``margin`` (m), for a wheelchair and a disk that much wider."""
     t, h, y = _geometry(batch)
     ground = batch.ground_mask
-    paths = rel.free_grid(batch.floors, t, h, y, ground, radius=WHEELCHAIR_RADIUS)
-    turning = rel.free_grid(batch.floors, t, h, y, ground, radius=TURNING_RADIUS, reach=False)
+    paths = rel.free_grid(batch.floors, t, h, y, ground, radius=WHEELCHAIR_RADIUS + margin)
+    turning = rel.free_grid(batch.floors, t, h, y, ground, radius=TURNING_RADIUS + margin, reach=False)
     return rel.reachable(paths, ground), rel.free_disk(turning, t, h, y, _mask(batch, "bed"), TURNING_NEAR_BED)
 
 

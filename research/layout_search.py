@@ -23,16 +23,17 @@ CHUNK = 256
 """Placements scored at once."""
 
 
-def wheelchair_score(batch: SceneBatch) -> np.ndarray:
-    """(B,) 2 for a turning disk by a bed plus the share of ground objects a wheelchair reaches: 3 = passes."""
-    reached, circle = wheelchair_parts(batch)
+def wheelchair_score(batch: SceneBatch, margin: float = 0.0) -> np.ndarray:
+    """(B,) 2 for a turning disk by a bed plus the share of ground objects a wheelchair reaches: 3 = passes; with
+    ``margin`` (m), for a wheelchair and a turning disk that much wider than the checker's."""
+    reached, circle = wheelchair_parts(batch, margin)
     ground = batch.ground_mask
     share = (reached & ground).sum(1).double() / ground.sum(1).clamp_min(1)
     return (2 * circle.double() + share).numpy()
 
 
 SCORES = {"wheelchair": (wheelchair_score, 3.0)}
-"""Task -> (score of a batch of rooms, the score at which a room passes)."""
+"""Task -> (score of a batch of rooms and a margin, the score at which a room passes)."""
 
 
 def placements(room: SceneBatch, i: int, grid: float) -> SceneBatch:
@@ -53,12 +54,13 @@ def placements(room: SceneBatch, i: int, grid: float) -> SceneBatch:
     return batch[keep.numpy()]
 
 
-def search_room(room: SceneBatch, task: str, grid: float = 0.25, sweeps: int = 2) -> SceneBatch:
-    """The one-room batch ``room`` (float64 geometry) rearranged greedily for ``task`` (module doc)."""
+def search_room(room: SceneBatch, task: str, grid: float = 0.25, sweeps: int = 2, margin: float = 0.0) -> SceneBatch:
+    """The one-room batch ``room`` (float64 geometry) rearranged greedily for ``task`` (module doc), scored with
+    ``margin``: rooms that pass with room to spare, so that they still pass placed a little off."""
     if task not in SCORES:
         raise ValueError(f"no layout search for task {task!r}; tasks with one: {', '.join(SCORES)}")
     score, passing = SCORES[task]
-    best = score(room)[0]
+    best = score(room, margin)[0]
     ground = room.ground_mask[0].numpy()
     area = (room.half_sizes[0, :, 0] * room.half_sizes[0, :, 2]).numpy()
     for _ in range(sweeps):
@@ -68,17 +70,18 @@ def search_room(room: SceneBatch, task: str, grid: float = 0.25, sweeps: int = 2
             options = placements(room, i, grid)
             if not len(options):
                 continue
-            got = np.concatenate([score(options[s:s + CHUNK]) for s in range(0, len(options), CHUNK)])
+            got = np.concatenate([score(options[s:s + CHUNK], margin) for s in range(0, len(options), CHUNK)])
             k = int(np.argmax(got))
             if got[k] > best + 1e-9:
                 best, room = got[k], options[[k]]
     return room
 
 
-def search_rooms(batch: SceneBatch, task: str, grid: float = 0.25, sweeps: int = 2) -> SceneBatch:
+def search_rooms(batch: SceneBatch, task: str, grid: float = 0.25, sweeps: int = 2, margin: float = 0.0
+                 ) -> SceneBatch:
     """Every room of ``batch`` rearranged by :func:`search_room` (geometry in float64)."""
     double = SceneBatch(batch.spec, batch.labels, batch.translations.double(), batch.half_sizes.double(),
                         batch.yaws.double(), batch.floors, batch.ids)
-    rooms = [search_room(double[[b]], task, grid, sweeps) for b in range(len(batch))]
+    rooms = [search_room(double[[b]], task, grid, sweeps, margin) for b in range(len(batch))]
     return SceneBatch(batch.spec, batch.labels, torch.cat([r.translations for r in rooms]),
                       double.half_sizes, torch.cat([r.yaws for r in rooms]), batch.floors, batch.ids)

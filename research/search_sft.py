@@ -57,13 +57,13 @@ def cached_rooms(path: str, spec, cfg) -> SceneBatch:
     return SceneBatch(spec, *(fields[k] for k in FIELDS), floors)
 
 
-def searched_rooms(policy, floors, task: str, generator) -> SceneBatch:
-    """The policy's rooms on ``floors``, rearranged by the layout search for ``task``."""
+def searched_rooms(policy, floors, task: str, generator, margin: float = 0.0) -> SceneBatch:
+    """The policy's rooms on ``floors``, rearranged by the layout search for ``task`` (scored with ``margin``)."""
     out = []
     for i in tqdm(range(0, len(floors), CHUNK), desc="rooms sampled and searched", unit="chunk"):
         with torch.no_grad():
             batch = policy.sample(floors[i:i + CHUNK], generator)
-        out.append(search_rooms(batch, task))
+        out.append(search_rooms(batch, task, margin=margin))
     return cat(out)
 
 
@@ -86,8 +86,13 @@ def main(argv=None) -> None:
                         help="a file for the searched rooms: written once, then read; given more than once, the files' "
                              "rooms together (each written before by a run of its own)")
     parser.add_argument("--floor-seed", type=int, help="the training floors' seed (default: the config's)")
+    parser.add_argument("--margin", type=float, default=0.0,
+                        help="search for rooms that pass with a wheelchair and turning disk this much (m) wider")
     parser.add_argument("--out", help="write a run folder with the trained adapter")
     parser.add_argument("--init", help="a run folder (of --out) whose adapter to start from")
+    parser.add_argument("--min-snr", action="store_true",
+                        help="weigh each room's loss by min(SNR_t, 5) (the priors' loss_weighting: min_snr), which puts "
+                             "the low-noise steps, where the network must keep the searched placement, before the rest")
     parser.add_argument("--lora-targets", help="a regular expression of the layers the LoRA adapts, in place of the "
                         "attention projections (as research/descent_offline.py's)")
     args = parser.parse_args(argv)
@@ -104,7 +109,7 @@ def main(argv=None) -> None:
                          "a run of its own)")
     else:
         seed = cfg.floor_seed if args.floor_seed is None else args.floor_seed
-        rooms = searched_rooms(policy, training_floors(cfg.room, args.rooms, seed), args.task, generator)
+        rooms = searched_rooms(policy, training_floors(cfg.room, args.rooms, seed), args.task, generator, args.margin)
         if args.cache:
             torch.save({"floor_seed": seed, **{k: getattr(rooms, k) for k in FIELDS}}, args.cache[0])
     floors = rooms.floors
@@ -126,7 +131,10 @@ def main(argv=None) -> None:
         x_t = prior.with_classes(schedule.q_sample(x0[rows], t, noise), t, classes[rows], generator)
         pred = policy.predict_x0(x_t, t, cond[rows], classes[rows], straight_through=True)
         w = weight[rows]
-        loss = ((pred - x0[rows]).square() * w).sum() / w.sum().clamp_min(1)
+        if args.min_snr:
+            snr_w = schedule.min_snr_weights(t)
+            w = w * (snr_w / snr_w.mean())[:, None, None]
+        loss = ((pred - x0[rows]).square() * w).sum() / weight[rows].sum().clamp_min(1)
         optimizer.zero_grad(set_to_none=True)
         loss.backward()
         torch.nn.utils.clip_grad_norm_(policy.trainable_parameters(), 1.0)

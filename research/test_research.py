@@ -567,3 +567,55 @@ def test_search_sft_caches_searched_rooms_per_floor_seed_and_trains_on_them_toge
     assert cfg.adapt == ["position", "yaw"]
     with pytest.raises(SystemExit, match="missing: .*r7.pt"):
         script.main(common + ["--cache", str(tmp_path / "r5.pt"), "--cache", str(tmp_path / "r7.pt")])
+
+
+def test_layout_search_with_a_margin_leaves_room_to_spare():
+    from iarcs_env.metrics import batch_float64
+    from iarcs_env.tasks import task_results
+
+    room = batch_float64([boxed_in()])
+    plain, spare = (search.search_room(room, "wheelchair", margin=m) for m in (0.0, 0.1))
+    assert task_results("wheelchair", plain)[0] and search.wheelchair_score(plain, 0.1)[0] < 3
+    assert task_results("wheelchair", spare)[0] and search.wheelchair_score(spare, 0.1)[0] >= 3
+
+
+def test_search_sft_min_snr_weighs_the_loss_by_timestep(tmp_path, capsys):
+    from conftest import perturb_zero_init, write_tiny_train_config
+
+    config = write_tiny_train_config(tmp_path, algorithm="physics-gradient", adapt=["position", "yaw"])
+    perturb_zero_init(ScenePrior.load(tmp_path / "prior.pt"), 0).save(tmp_path / "prior.pt")
+    script = load("search_sft")
+    common = [str(config), "--task", "wheelchair", "--rooms", "3", "--other-floors", "2", "--batch", "2",
+              "--cache", str(tmp_path / "r.pt"), "--steps", "2", "--eval-every", "2"]
+    losses = []
+    for extra in ([], ["--min-snr"]):
+        script.main(common + extra)
+        line = next(x for x in capsys.readouterr().out.splitlines() if x.startswith("step 2: loss"))
+        losses.append(float(line.split()[3].rstrip(";")))
+    assert losses[0] != losses[1]
+
+
+def test_restore_probe_restores_handed_rooms_with_their_classes_and_reports_each_t(tmp_path, capsys):
+    from conftest import write_tiny_train_config
+    from iarcs_env.datasets import save_layouts
+
+    probe = load("restore_probe")
+    config = write_tiny_train_config(tmp_path, algorithm="physics-gradient", adapt=["position", "yaw"])
+    save_layouts([boxed_in(), boxed_in()], tmp_path / "rooms.json")
+    probe.main([str(config), str(tmp_path / "rooms.json"), "--task", "wheelchair", "--t", "0", "500", "--jitter", "0.1"])
+    out = capsys.readouterr().out.splitlines()
+    assert out[0] == "2 rooms as handed: Col_obj 0.0%, wheelchair 0.0%"
+    assert [line.split(":")[0] for line in out[1:]] == ["jittered by sigma = 0.1 m", "restored from t = 0",
+                                                        "restored from t = 500"]
+    from agents.train import load_train_config
+    from descent_offline import build_with_targets
+
+    cfg = load_train_config(config)
+    _, policy = build_with_targets(cfg)
+    rooms = probe.load_rooms(str(tmp_path / "rooms.json"), policy.prior.spec, cfg, None)
+    once, again = (probe.restore(policy, rooms, 250, cfg.num_steps, cfg.eta) for _ in range(2))
+    assert torch.equal(once.labels, rooms.labels) and torch.equal(once.translations, again.translations)
+    assert probe.ground_move(rooms, rooms) == 0 and probe.ground_move(rooms, once) > 0
+    moved = probe.jitter(rooms, 0.1, torch.Generator().manual_seed(0))
+    assert 0.03 < probe.ground_move(rooms, moved) < 0.3
+    assert torch.equal(moved.translations[..., 1], rooms.translations[..., 1])

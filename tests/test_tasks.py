@@ -113,6 +113,19 @@ def test_wheelchair():
     assert wheelchair_parts(CORRIDOR_BED, floor=CORRIDOR, near_bed=1.0) == (True, True)
 
 
+def test_wheelchair_parts_with_a_margin_ask_for_a_wider_wheelchair_and_turning_disk():
+    from iarcs_env.metrics import batch_float64
+    from iarcs_env.tasks import wheelchair_parts as parts
+
+    # a 1.4 m wide room: 0.9 m paths reach the single bed; 1.5 m ones (a margin of 0.3 m) fit nowhere
+    narrow = batch_float64([make_layout([box("single_bed", 0.45, 1.0, 0.45, 1.0, hy=0.25)],
+                                        floor=[(0, 0), (1.4, 0), (1.4, 6), (0, 6)])])
+    assert parts(narrow)[0].all() and not parts(narrow, margin=0.3)[0].any()
+    # a 5 x 5 room with a double bed: a 1.5 m turning disk fits by the bed, one of 3.1 m (a margin of 0.8 m) does not
+    room = batch_float64([make_layout([bed(), nightstand(1.4)], floor=ROOM_5)])
+    assert parts(room)[1].all() and not parts(room, margin=0.8)[1].any()
+
+
 #: Four wardrobes across a 5 x 5 room at z = 3.5..4.1, leaving a 0.68 m gap at x = 4.32..5.
 WARDROBE_ROW = [box("wardrobe", 0.54 + 1.08 * k, 3.8, 0.54, 0.3, hy=1.0) for k in range(4)]
 #: An L-shaped room: a 1.4 m wide corridor (z < 3) opening into a 4 m wide area; a single bed at its end.

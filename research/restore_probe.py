@@ -1,0 +1,114 @@
+"""Does a policy keep the rooms it is handed? Rooms (a layout file, or a ``search_sft.py --cache`` file of searched
+rooms) noised to a timestep t of the sampling chain and restored by the policy from there to t = 0 (the config's
+steps and eta, the rooms' classes given, as ``search_sft.py`` trains): per t, Col_obj and the task's pass rate of the
+restored rooms, and the median distance (m) their ground objects moved; with ``--jitter``, the same figures of the rooms
+with random noise of each sigma (m) added to their positions, for a move of the same size with no direction. A prior
+pulls rooms off its own manifold back to it at low noise; an adapter that learned a task's rooms keeps them. t = 0 is
+the chain's last step alone.
+
+    .venv/bin/python research/restore_probe.py experiments/ablations/task_wheelchair_gradient.yaml ROOMS.pt \\
+        --task wheelchair [--init RUN] [--t 0 50 100 200 300 500]
+    .venv/bin/python research/restore_probe.py experiments/ablations/stage1_livingroom_depth.yaml DESCENDED.json
+"""
+
+from __future__ import annotations
+
+import argparse
+import functools
+import sys
+from pathlib import Path
+
+import torch
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+from descent_offline import build_with_targets  # noqa: E402
+from search_sft import cached_rooms  # noqa: E402
+from agents.train import ADAPTERS_DIR, load_train_config  # noqa: E402
+from iarcs_env.metrics import evaluate_layouts  # noqa: E402
+from iarcs_env.schedule import standard_normal  # noqa: E402
+from iarcs_env.scene import SceneBatch  # noqa: E402
+from iarcs_env.tasks import task_results  # noqa: E402
+
+
+def load_rooms(path: str, spec, cfg, count: int | None) -> SceneBatch:
+    """The first ``count`` rooms of a layout file (centred) or of a ``search_sft.py`` cache file."""
+    if str(path).endswith(".pt"):
+        rooms = cached_rooms(path, spec, cfg)
+        return rooms[:count] if count else rooms
+    from iarcs_env.datasets import load_layouts
+
+    layouts = [lay.centred() for lay in load_layouts(path, cfg.room)[:count]]
+    return SceneBatch.from_layouts(layouts, spec)
+
+
+@torch.no_grad()
+def restore(policy, rooms: SceneBatch, start: int, num_steps: int, eta: float, seed: int = 0) -> SceneBatch:
+    """``rooms`` noised to the chain's first timestep at or below ``start`` and denoised by the policy to t = 0."""
+    prior = policy.prior
+    x0, classes = rooms.encode(prior.stats), rooms.labels
+    schedule = prior.schedule
+    schedule.set_timesteps(num_steps)
+    steps = [int(t) for t in schedule.timesteps if int(t) <= start]
+    generator = torch.Generator().manual_seed(seed)
+    fn = prior.model_fn(prior.floor_condition(rooms.floors), eps_fn=functools.partial(policy.eps, classes=classes))
+    n = len(rooms)
+    x = schedule.q_sample(x0, torch.full((n,), steps[0]), standard_normal(x0.shape, generator, x0.device, x0.dtype))
+    for t in steps:
+        tt = torch.full((n,), t, dtype=torch.long)
+        x = schedule.step(fn(prior.with_classes(x, tt, classes, generator), tt), tt, x, eta=eta,
+                          generator=generator).prev_sample
+    return SceneBatch.decode(prior.with_clean_classes(x, classes), prior.stats, rooms.floors)
+
+
+def ground_move(before: SceneBatch, after: SceneBatch) -> float:
+    """Median floor distance (m) the ground objects moved."""
+    move = (after.translations - before.translations)[..., 0:3:2].norm(dim=-1)
+    return float(move[before.ground_mask].median())
+
+
+def jitter(rooms: SceneBatch, sigma: float, generator: torch.Generator) -> SceneBatch:
+    """``rooms`` with N(0, sigma^2) (m) added to each object's x and z."""
+    noise = torch.randn(rooms.translations.shape, generator=generator, dtype=rooms.translations.dtype) * sigma
+    noise[..., 1] = 0
+    return SceneBatch(rooms.spec, rooms.labels, rooms.translations + noise, rooms.half_sizes, rooms.yaws, rooms.floors)
+
+
+def figures(rooms: SceneBatch, task: str | None) -> str:
+    """Col_obj (and the task's pass rate) of ``rooms``."""
+    text = f"Col_obj {evaluate_layouts(rooms.to_layouts())['Col_obj']:.1%}"
+    return text + (f", {task} {task_results(task, rooms).mean():.1%}" if task else "")
+
+
+def main(argv=None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("config", help="a task training config (its prior, stage-1 adapter, adapted features)")
+    parser.add_argument("rooms", help="a layout file (neutral JSON) or a search_sft.py --cache file")
+    parser.add_argument("--task", help="a task checker to score the restored rooms with too")
+    parser.add_argument("--init", help="a run folder (search_sft.py --out, iarcs train) whose adapter restores")
+    parser.add_argument("--rooms", type=int, dest="count", help="only the first N rooms")
+    parser.add_argument("--t", type=int, nargs="+", default=[0, 50, 100, 200, 300, 500],
+                        help="timesteps to restore from (each the chain's first step at or below it)")
+    parser.add_argument("--jitter", type=float, nargs="*", default=[], help="position noise sigmas (m) to compare")
+    args = parser.parse_args(argv)
+    torch.set_num_threads(1)
+    cfg = load_train_config(args.config)
+    _, policy = build_with_targets(cfg)
+    if args.init:
+        policy.load_adapter(Path(args.init) / ADAPTERS_DIR / cfg.adapter, cfg.adapter)
+    rooms = load_rooms(args.rooms, policy.prior.spec, cfg, args.count)
+    print(f"{len(rooms)} rooms as handed: {figures(rooms, args.task)}")
+    generator = torch.Generator().manual_seed(1)
+    for sigma in args.jitter:
+        out = jitter(rooms, sigma, generator)
+        print(f"jittered by sigma = {sigma} m: {figures(out, args.task)}, ground objects moved "
+              f"{ground_move(rooms, out):.3f} m (median)")
+    for start in args.t:
+        out = restore(policy, rooms, start, cfg.num_steps, cfg.eta)
+        print(f"restored from t = {start}: {figures(out, args.task)}, ground objects moved "
+              f"{ground_move(rooms, out):.3f} m (median)", flush=True)
+
+
+if __name__ == "__main__":
+    main()
