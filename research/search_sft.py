@@ -9,7 +9,7 @@ floors (``--init RUN --steps 0`` only measures RUN's adapter). Writes a run fold
 --checkpoint`` reads.
 
     .venv/bin/python research/search_sft.py experiments/ablations/task_wheelchair_gradient.yaml --task wheelchair \\
-        --rooms 1024 --steps 1500 --cache ROOMS.pt --out RUN
+        --rooms 1024 --steps 1500 [--margin 0.1] --cache ROOMS.pt --out RUN
 """
 
 from __future__ import annotations
@@ -90,9 +90,6 @@ def main(argv=None) -> None:
                         help="search for rooms that pass with a wheelchair and turning disk this much (m) wider")
     parser.add_argument("--out", help="write a run folder with the trained adapter")
     parser.add_argument("--init", help="a run folder (of --out) whose adapter to start from")
-    parser.add_argument("--min-snr", action="store_true",
-                        help="weigh each room's loss by min(SNR_t, 5) (the priors' loss_weighting: min_snr), which puts "
-                             "the low-noise steps, where the network must keep the searched placement, before the rest")
     parser.add_argument("--lora-targets", help="a regular expression of the layers the LoRA adapts, in place of the "
                         "attention projections (as research/descent_offline.py's)")
     args = parser.parse_args(argv)
@@ -131,10 +128,7 @@ def main(argv=None) -> None:
         x_t = prior.with_classes(schedule.q_sample(x0[rows], t, noise), t, classes[rows], generator)
         pred = policy.predict_x0(x_t, t, cond[rows], classes[rows], straight_through=True)
         w = weight[rows]
-        if args.min_snr:
-            snr_w = schedule.min_snr_weights(t)
-            w = w * (snr_w / snr_w.mean())[:, None, None]
-        loss = ((pred - x0[rows]).square() * w).sum() / weight[rows].sum().clamp_min(1)
+        loss = ((pred - x0[rows]).square() * w).sum() / w.sum().clamp_min(1)
         optimizer.zero_grad(set_to_none=True)
         loss.backward()
         torch.nn.utils.clip_grad_norm_(policy.trainable_parameters(), 1.0)

@@ -579,22 +579,6 @@ def test_layout_search_with_a_margin_leaves_room_to_spare():
     assert task_results("wheelchair", spare)[0] and search.wheelchair_score(spare, 0.1)[0] >= 3
 
 
-def test_search_sft_min_snr_weighs_the_loss_by_timestep(tmp_path, capsys):
-    from conftest import perturb_zero_init, write_tiny_train_config
-
-    config = write_tiny_train_config(tmp_path, algorithm="physics-gradient", adapt=["position", "yaw"])
-    perturb_zero_init(ScenePrior.load(tmp_path / "prior.pt"), 0).save(tmp_path / "prior.pt")
-    script = load("search_sft")
-    common = [str(config), "--task", "wheelchair", "--rooms", "3", "--other-floors", "2", "--batch", "2",
-              "--cache", str(tmp_path / "r.pt"), "--steps", "2", "--eval-every", "2"]
-    losses = []
-    for extra in ([], ["--min-snr"]):
-        script.main(common + extra)
-        line = next(x for x in capsys.readouterr().out.splitlines() if x.startswith("step 2: loss"))
-        losses.append(float(line.split()[3].rstrip(";")))
-    assert losses[0] != losses[1]
-
-
 def test_restore_probe_restores_handed_rooms_with_their_classes_and_reports_each_t(tmp_path, capsys):
     from conftest import write_tiny_train_config
     from iarcs_env.datasets import save_layouts
