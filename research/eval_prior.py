@@ -112,6 +112,20 @@ def floor_usage(prior: ScenePrior, reference: list, gen: list | None = None) -> 
 
 
 @torch.no_grad()
+def denoise_chain(prior: ScenePrior, fn, x: torch.Tensor, start: int, num_steps: int, eta: float,
+                  generator: torch.Generator, classes: torch.Tensor | None = None) -> torch.Tensor:
+    """x_t at ``start`` (a step of the ``num_steps`` DDIM grid) denoised to t = 0 by ``fn(x_t, t)`` (a
+    :meth:`ScenePrior.model_fn`); ``classes`` (B, N): given at every step (:meth:`ScenePrior.with_classes`) and in
+    the result."""
+    grid = prior.schedule.set_timesteps(num_steps).tolist()
+    for t in grid[grid.index(start):]:
+        tt = torch.full((x.shape[0],), t)
+        x_in = x if classes is None else prior.with_classes(x, tt, classes, generator)
+        x = prior.schedule.step(fn(x_in, tt), tt, x, eta=eta, generator=generator).prev_sample
+    return x if classes is None else prior.with_clean_classes(x, classes)
+
+
+@torch.no_grad()
 def denoise_from(prior: ScenePrior, reference: list, starts, seed: int = 0, num_steps: int = 20,
                  tasks: bool = False) -> dict:
     """Metrics of the reference rooms noised to each t in ``starts`` and denoised by the prior (DDIM, eta 1),
@@ -131,10 +145,7 @@ def denoise_from(prior: ScenePrior, reference: list, starts, seed: int = 0, num_
         g = torch.Generator().manual_seed(seed)
         x = schedule.q_sample(x0, start, torch.randn(x0.shape, generator=g))
         noised = SceneBatch.decode(x / schedule.alphas_cumprod[start].sqrt(), prior.stats, floors)
-        for t in grid[grid.index(start):]:
-            tt = torch.full((x.shape[0],), t)
-            x = schedule.step(fn(x, tt), tt, x, eta=1.0, generator=g).prev_sample
-        result = SceneBatch.decode(x, prior.stats, floors)
+        result = SceneBatch.decode(denoise_chain(prior, fn, x, start, num_steps, 1.0, g), prior.stats, floors)
         layouts = result.to_layouts()
         row = out[f"from t = {start}"] = evaluate_layouts(layouts)
         row["position_error_m"] = position_errors(result, original)

@@ -4,7 +4,7 @@ steps and eta, the rooms' classes given, as ``search_sft.py`` trains): per t, Co
 restored rooms, and the median distance (m) their ground objects moved; with ``--jitter``, the same figures of the rooms
 with random noise of each sigma (m) added to their positions, for a move of the same size with no direction. A prior
 pulls rooms off its own manifold back to it at low noise; an adapter that learned a task's rooms keeps them. t = 0 is
-the chain's last step alone.
+the chain's last step alone. ``eval_prior.py --denoise-from`` does the same for a prior and its data's rooms.
 
     .venv/bin/python research/restore_probe.py experiments/ablations/task_wheelchair_gradient.yaml ROOMS.pt \\
         --task wheelchair [--init RUN] [--t 0 50 100 200 300 500]
@@ -24,6 +24,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from descent_offline import build_with_targets  # noqa: E402
+from eval_prior import denoise_chain  # noqa: E402
 from search_sft import cached_rooms  # noqa: E402
 from agents.train import ADAPTERS_DIR, load_train_config  # noqa: E402
 from iarcs_env.metrics import evaluate_layouts  # noqa: E402
@@ -48,18 +49,12 @@ def restore(policy, rooms: SceneBatch, start: int, num_steps: int, eta: float, s
     """``rooms`` noised to the chain's first timestep at or below ``start`` and denoised by the policy to t = 0."""
     prior = policy.prior
     x0, classes = rooms.encode(prior.stats), rooms.labels
-    schedule = prior.schedule
-    schedule.set_timesteps(num_steps)
-    steps = [int(t) for t in schedule.timesteps if int(t) <= start]
+    first = max(int(t) for t in prior.schedule.set_timesteps(num_steps) if int(t) <= start)
     generator = torch.Generator().manual_seed(seed)
     fn = prior.model_fn(prior.floor_condition(rooms.floors), eps_fn=functools.partial(policy.eps, classes=classes))
-    n = len(rooms)
-    x = schedule.q_sample(x0, torch.full((n,), steps[0]), standard_normal(x0.shape, generator, x0.device, x0.dtype))
-    for t in steps:
-        tt = torch.full((n,), t, dtype=torch.long)
-        x = schedule.step(fn(prior.with_classes(x, tt, classes, generator), tt), tt, x, eta=eta,
-                          generator=generator).prev_sample
-    return SceneBatch.decode(prior.with_clean_classes(x, classes), prior.stats, rooms.floors)
+    x = prior.schedule.q_sample(x0, torch.full((len(rooms),), first), standard_normal(x0.shape, generator))
+    x = denoise_chain(prior, fn, x, first, num_steps, eta, generator, classes)
+    return SceneBatch.decode(x, prior.stats, rooms.floors)
 
 
 def ground_move(before: SceneBatch, after: SceneBatch) -> float:
