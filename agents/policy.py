@@ -25,6 +25,7 @@ it is loaded.
 from __future__ import annotations
 
 import contextlib
+import copy
 import json
 from pathlib import Path
 from typing import Sequence
@@ -128,7 +129,8 @@ class DiffusionPolicy(nn.Module):
         classes are then given: it must not adapt ``class``). ``adapted_classes``: the classes or class groups
         whose objects it changes (empty: those of ``init_from``, or all); the other objects follow the reference.
         Needs ``required`` (the rooms' classes given)."""
-        self.model.add_adapter(name, self.lora_config)
+        # a copy keeps init_from's layers and rank (an adapter trained with other target_modules loses none of them)
+        self.model.add_adapter(name, copy.deepcopy(self.model.peft_config[init_from]) if init_from else self.lora_config)
         self.adapted[name] = check_feature_groups(adapted or (self.adapted[init_from] if init_from else ()))
         if required and "class" in self.adapted[name]:
             raise ValueError("an adapter with required objects samples its rooms' classes given, so it cannot adapt "

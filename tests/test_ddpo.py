@@ -601,6 +601,25 @@ def perturb(policy, adapter, seed):
                 p.add_(0.3 * torch.randn(p.shape, generator=g))
 
 
+def test_a_copied_adapter_keeps_the_layers_of_the_adapter_it_starts_from(tmp_path, monkeypatch):
+    """An adapter trained on more layers than the default (research/descent_offline.py --lora-targets), loaded
+    and copied as ``iarcs train`` does with ``init_adapter``, keeps all of them: the copy predicts what it did."""
+    import agents.policy as policy_module
+
+    other = DiffusionPolicy(tiny_prior(), num_steps=STEPS, adapter="scratch")  # the default layers
+    monkeypatch.setattr(policy_module, "LORA_TARGETS", r".*\.(q_proj|k_proj|v_proj|out_proj|ff\.0|ff\.3)$")
+    wide = DiffusionPolicy(tiny_prior(), num_steps=STEPS)
+    perturb(wide, "stage1", 0)
+    assert any(".ff." in n and "lora_B" in n for n, _ in wide.model.named_parameters())
+    other.load_adapter(wide.save_adapter(tmp_path / "adapters"), name="init")
+    other.add_adapter("task", init_from="init")
+    x = torch.randn(3, wide.prior.num_slots, wide.prior.spec.feature_dim, generator=torch.Generator().manual_seed(2))
+    t, floor = torch.full((3,), 300), wide.prior.floor_condition(FLOORS[:3])
+    with torch.no_grad():
+        copied, trained, prior = other.eps(x, t, floor), wide.eps(x, t, floor), other.eps(x, t, floor, adapter="scratch")
+    assert torch.allclose(copied, trained, atol=1e-5) and not torch.allclose(copied, prior, atol=1e-3)
+
+
 def test_a_partial_adapter_follows_the_adapter_it_starts_from_and_carries_it_when_saved(tmp_path):
     """A stage-2 adapter of some features only (here height) keeps the stage-1 adapter's prediction, not the
     prior's, on the others; saved and loaded into a policy without the stage-1 adapter it samples the same."""
