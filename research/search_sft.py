@@ -9,7 +9,7 @@ floors (``--init RUN --steps 0`` only measures RUN's adapter). Writes a run fold
 --checkpoint`` reads.
 
     .venv/bin/python research/search_sft.py experiments/ablations/task_wheelchair_gradient.yaml --task wheelchair \\
-        --rooms 1024 --steps 1500 [--margin 0.1] --cache ROOMS.pt --out RUN
+        --rooms 1024 --steps 1500 [--margin 0.1] [--passing] --cache ROOMS.pt --out RUN
 """
 
 from __future__ import annotations
