@@ -9,7 +9,7 @@ floors (``--init RUN --steps 0`` only measures RUN's adapter). Writes a run fold
 --checkpoint`` reads.
 
     .venv/bin/python research/search_sft.py experiments/ablations/task_wheelchair_gradient.yaml --task wheelchair \\
-        --rooms 1024 --steps 1500 [--margin 0.1] [--passing] --cache ROOMS.pt --out RUN
+        --rooms 1024 --steps 1500 [--margin 0.1] --cache ROOMS.pt --out RUN
 """
 
 from __future__ import annotations
@@ -88,8 +88,6 @@ def main(argv=None) -> None:
     parser.add_argument("--floor-seed", type=int, help="the training floors' seed (default: the config's)")
     parser.add_argument("--margin", type=float, default=0.0,
                         help="search for rooms that pass with a wheelchair and turning disk this much (m) wider")
-    parser.add_argument("--passing", action="store_true",
-                        help="fine-tune only on the searched rooms that pass the task (filtered expert iteration)")
     parser.add_argument("--out", help="write a run folder with the trained adapter")
     parser.add_argument("--init", help="a run folder (of --out) whose adapter to start from")
     parser.add_argument("--lora-targets", help="a regular expression of the layers the LoRA adapts, in place of the "
@@ -111,12 +109,8 @@ def main(argv=None) -> None:
         rooms = searched_rooms(policy, training_floors(cfg.room, args.rooms, seed), args.task, generator, args.margin)
         if args.cache:
             torch.save({"floor_seed": seed, **{k: getattr(rooms, k) for k in FIELDS}}, args.cache[0])
-    passed = task_results(args.task, rooms)
-    print(f"{len(rooms)} searched rooms: {args.task} {passed.mean():.1%}")
-    if args.passing:
-        rooms = rooms[passed]
-        print(f"fine-tuning on the {len(rooms)} that pass")
     floors = rooms.floors
+    print(f"{len(rooms)} searched rooms: {args.task} {task_results(args.task, rooms).mean():.1%}")
     x0, cond, classes = rooms.encode(prior.stats), prior.floor_condition(floors), rooms.labels
     weight = adapted_object_weights(policy, x0)
     other = [lay.centred().floor for lay in generate_layouts(cfg.room, args.other_floors, seed=4242)]
