@@ -1,0 +1,52 @@
+"""The rooms of a layout file that pass the universal checkers and keep the room type's relations, written as a
+layout file of their own: no object out of bound, none off the floor, and (with ``--relations``) every relation
+whose objects the room holds also holds (``iarcs_env/relation_fidelity.py``: a bed with two nightstands has them
+at its head, a TV stand and a bed face each other, ...). Used to try augmentation with only those of the
+generated rooms (Table 4, ``docs/results/augmentation.md``).
+
+    .venv/bin/python research/valid_rooms.py AUG/scenes.json --room bedroom --relations --out VALID.json
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from iarcs_env.datasets import load_layouts, save_layouts  # noqa: E402
+from iarcs_env.metrics import batch_float64, evaluate_batch  # noqa: E402
+from iarcs_env.relation_fidelity import relation_flags  # noqa: E402
+
+
+def valid(layouts, room: str, relations: bool, chunk: int = 250) -> np.ndarray:
+    """Per room: no object out of bound or off the floor and, with ``relations``, no relation whose objects
+    co-occur without holding."""
+    keep = np.array([not (s.out_of_bound or s.off_floor) for k in range(0, len(layouts), chunk)
+                     for s in evaluate_batch(batch_float64(layouts[k:k + chunk])).scenes])
+    if relations:
+        for co, holds in relation_flags(layouts, room).values():
+            keep &= ~co | holds
+    return keep
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("scenes", help="a layout file")
+    parser.add_argument("--room", default="bedroom")
+    parser.add_argument("--relations", action="store_true",
+                        help="also drop rooms where a relation's objects co-occur and it does not hold")
+    parser.add_argument("--limit", type=int, default=None, help="keep at most this many rooms, in order")
+    parser.add_argument("--out", required=True, help="layout file to write")
+    args = parser.parse_args()
+    layouts = load_layouts(args.scenes, args.room)
+    kept = [lay for lay, ok in zip(layouts, valid(layouts, args.room, args.relations)) if ok][:args.limit]
+    save_layouts(kept, args.out, source=f"{args.scenes}, valid rooms" + (", relations kept" if args.relations else ""))
+    print(f"{len(kept)} of {len(layouts)} rooms kept: {args.out}")
+
+
+if __name__ == "__main__":
+    main()
