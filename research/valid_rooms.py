@@ -4,7 +4,7 @@ whose objects the room holds also holds (``iarcs_env/relation_fidelity.py``: a b
 at its head, a TV stand and a bed face each other, ...). Used to try augmentation with only those of the
 generated rooms (Table 4, ``docs/results/augmentation.md``).
 
-    .venv/bin/python research/valid_rooms.py AUG/scenes.json --room bedroom --relations --out VALID.json
+    .venv/bin/python research/valid_rooms.py AUG/scenes.json --room bedroom --relations --limit 4000 --out VALID.json
 """
 
 from __future__ import annotations
