@@ -135,8 +135,10 @@ def test_the_gpu_run_trains_and_evaluates_the_room_type_of_its_config(tmp_path):
 @pytest.mark.slow
 def test_a_hung_step_is_stopped_at_its_limit_and_the_budget_holds(tmp_path):
     minutes = 0.5
-    proc, seconds, out = run_script(tmp_path, minutes, TESTS="tests/fixtures/gpu_run_hang.py", TESTS_TIMEOUT="8",
-                                    BENCH_TIMEOUT="4")
+    # --noconftest: the suite's conftest probes the sandbox in a subprocess, which on a loaded machine can take
+    # most of the 8 s before pytest names the test that then hangs
+    proc, seconds, out = run_script(tmp_path, minutes, TESTS="--noconftest tests/fixtures/gpu_run_hang.py",
+                                    TESTS_TIMEOUT="8", BENCH_TIMEOUT="4")
     assert proc.returncode == 0, proc.stdout + proc.stderr
     assert seconds <= minutes * 60 + OVERRUN_S, proc.stdout
     names = {p.name for p in out.iterdir()}
