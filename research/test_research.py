@@ -603,3 +603,33 @@ def test_restore_probe_restores_handed_rooms_with_their_classes_and_reports_each
     moved = probe.jitter(rooms, 0.1, torch.Generator().manual_seed(0))
     assert 0.03 < probe.ground_move(rooms, moved) < 0.3
     assert torch.equal(moved.translations[..., 1], rooms.translations[..., 1])
+
+
+def test_out_of_bound_floors_writes_the_data_rooms_of_the_floors_a_sampling_put_an_object_out_of(tmp_path, capsys):
+    """Two L-shaped floors; one sampling's wardrobe is through the notch of floor a: a's data room is written,
+    not b's, whose sample keeps everything inside."""
+    from iarcs_env.datasets import load_layouts, save_layouts
+
+    script = load("out_of_bound_floors")
+    inside = [box("wardrobe", 1.0, 1.0, 0.5, 0.5)]
+    data = [make_layout(inside, floor=L_SHAPE, id=name) for name in ("a", "b")]
+    samples = [make_layout([box("wardrobe", 3.0, 2.0, 0.5, 0.5)], floor=L_SHAPE, id="a:sample"),
+               make_layout(inside, floor=L_SHAPE, id="b:sample")]
+    assert script.out_of_bound_floors(samples) == {"a": 1}
+    save_layouts(data, tmp_path / "data.json")
+    save_layouts(samples, tmp_path / "s.json")
+    assert script.main([str(tmp_path / "data.json"), str(tmp_path / "s.json"), "--out", str(tmp_path / "h.json")]) == 0
+    assert [lay.id for lay in load_layouts(tmp_path / "h.json", num_scenes=0)] == ["a"]
+    assert "1 objects out of bound on 1 floors; 1 data rooms" in capsys.readouterr().out
+
+
+def test_notch_probe_conditions_on_the_bounding_rectangle_but_counts_against_the_true_floor():
+    """An L-shaped floor's bounding rectangle is its 4 x 4 square; the shipped prior, told the floor is that
+    square, puts over three times as many objects out of the true floor (in the notch) as when told the truth."""
+    script = load("notch_probe")
+    floor = make_layout([], floor=L_SHAPE).floor
+    assert sorted(map(tuple, script.bounding_rectangle(floor).vertices.tolist())) == [(0, 0), (0, 4), (4, 0), (4, 4)]
+    prior = ScenePrior.load_default("bedroom")
+    seen, n_seen = script.out_of_true_floor(prior, [floor] * 32, [floor] * 32)
+    blind, n_blind = script.out_of_true_floor(prior, [floor] * 32, [script.bounding_rectangle(floor)] * 32)
+    assert blind / n_blind > 3 * seen / n_seen
