@@ -77,7 +77,7 @@ def test_augment_fine_tunes_the_prior_on_its_data_plus_the_rooms(tiny_recipe, tm
     printed = capsys.readouterr().out
     assert "6 rooms of" in printed and "beside 36 of procedural" in printed  # 40 rooms less 4 held out
     cfg = yaml.safe_load((out / "finetune.yaml").read_text())
-    assert cfg["init_from"] == "default" and cfg["lr"] == 1.0e-4
+    assert cfg["init_from"] == "default" and cfg["lr"] == 3.0e-5 and cfg["ema_decay"] == 0.995
     assert cfg["extra_datasets"] == [{"dataset": str((out / "scenes.json").resolve()), "weight": pytest.approx(6 / 36)}]
     assert (out / "prior" / "prior.pt").exists() and (out / "prior" / "train_state.pt").exists()
     step = json.loads((out / "prior" / "metrics.jsonl").read_text().splitlines()[-1])["step"]
