@@ -23,8 +23,8 @@ RECIPES = {"bedroom": EXPERIMENTS / "pretrain_bedroom_finish_cpu.yaml",
            "diningroom": EXPERIMENTS / "pretrain_diningroom_slots_cpu_minsnr_overlap.yaml"}
 CHUNK = 250
 #: Fine-tuning a trained prior: a small learning rate held after a short warm-up (a clock ends the run) and a
-#: faster EMA than a from-scratch run's. lr 1e-4 with EMA 0.99 lost 8% of the bedroom prior's relation recall
-#: in 433 steps; 3e-5 with 0.995 loses 4% at nearly the same fall of Col_obj (docs/results/augmentation.md).
+#: faster EMA than a from-scratch run's. In 433 bedroom steps lr 1e-4 with EMA 0.99 lost 8% of the prior's relation
+#: recall (Col_obj -22.5%); 3e-5 with 0.995 loses 4% (Col_obj -18.0%; docs/results/augmentation.md).
 FINETUNE = {"lr": 3.0e-5, "warmup_steps": 20, "lr_schedule": "constant", "ema_decay": 0.995, "steps": 1_000_000}
 
 
