@@ -3,7 +3,7 @@ layouts themselves, no network. Asks whether the living-room stage-1 adapters fa
 have no way down that keeps their relations and walkways (issue 39).
 
     .venv/bin/python research/layout_descent.py --room livingroom PRIOR.json --out DESCENDED.json \\
-        [--steps 300] [--reach-weight 5] [--out-of-bound-shrink 0] [--refresh 20] \\
+        [--steps 300] [--reach-weight 5] [--out-of-bound-weight 5] [--out-of-bound-shrink 0] [--refresh 20] \\
         [--contact-gap-weight 3 --contact-gap 0.12]
     iarcs evaluate --scenes DESCENDED.json --reference floors.json --features none --out report.json
 
@@ -37,6 +37,7 @@ def main() -> None:
     parser.add_argument("--out", required=True, help="where to write the moved rooms (neutral JSON)")
     parser.add_argument("--steps", type=int, default=300)
     parser.add_argument("--reach-weight", type=float, default=0.0)
+    parser.add_argument("--out-of-bound-weight", type=float, default=5.0)
     parser.add_argument("--out-of-bound-shrink", type=float, default=0.05)
     parser.add_argument("--contact-gap-weight", type=float, default=0.0,
                         help="> 0: a contact pair within 0.6 m drawn to --contact-gap (ddpo.contact_gap_weight)")
@@ -52,7 +53,7 @@ def main() -> None:
 
     torch.set_num_threads(1)
     layouts = load_layouts(args.scenes, args.room)
-    weights = dict(out_of_bound_weight=5.0, out_of_bound_shrink=args.out_of_bound_shrink, contact=CONTACT[args.room],
+    weights = dict(out_of_bound_weight=args.out_of_bound_weight, out_of_bound_shrink=args.out_of_bound_shrink, contact=CONTACT[args.room],
                    overlap_measure="depth", contact_gap_weight=args.contact_gap_weight, contact_gap=args.contact_gap)
     out, before, after = [], [], []
     for start in range(0, len(layouts), 50):
