@@ -1,4 +1,4 @@
-"""How well can any denoiser restore a nightstand from t given its bed? The floor under the bed ablation's figure
+"""How well could a denoiser restore a nightstand from t given its bed? A yardstick for the bed ablation's figure
 (:mod:`agents.bed_ablation`: the median error of the one-step x0_hat, asked at most half the error without the bed
 at t = 200). The procedural rooms put a bed's nightstands left or right of it at random, in random slot order, so
 even a restoration that knows the bed exactly must tell the side from the nightstand's noisy position: this

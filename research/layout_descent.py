@@ -10,8 +10,8 @@ have no way down that keeps their relations and walkways (issue 39).
 Each room's objects move on the floor (x and z; heights, sizes, yaws and classes kept) by
 :func:`agents.descent_imitation.descend_layouts` (Adam on :func:`agents.physics_gradient.layout_penalty`), at the
 weights of the depth configs (`experiments/ablations/stage1_ROOM_depth.yaml`): each overlapping pair its penetration
-depth, the out-of-bound area weighed 5, the data's contact spared (seat-table in living and dining rooms,
-nightstand-bed in bedrooms); ``--reach-weight`` adds the walkway term, ``--out-of-bound-shrink 0`` charges the whole
+depth, the out-of-bound area weighed 5 (``--out-of-bound-weight``), the data's contact spared (seat-table in living
+and dining rooms, nightstand-bed in bedrooms); ``--reach-weight`` adds the walkway term, ``--out-of-bound-shrink 0`` charges the whole
 footprint's area outside (R_out spares 0.05 m a side; without the margin the walkway term rests objects just through a
 wall). The contact pairs are not charged (depth) unless ``--contact-gap-weight`` draws each to a gap, as
 ``ddpo.contact_gap_weight`` does.
@@ -53,8 +53,9 @@ def main() -> None:
 
     torch.set_num_threads(1)
     layouts = load_layouts(args.scenes, args.room)
-    weights = dict(out_of_bound_weight=args.out_of_bound_weight, out_of_bound_shrink=args.out_of_bound_shrink, contact=CONTACT[args.room],
-                   overlap_measure="depth", contact_gap_weight=args.contact_gap_weight, contact_gap=args.contact_gap)
+    weights = dict(out_of_bound_weight=args.out_of_bound_weight, out_of_bound_shrink=args.out_of_bound_shrink,
+                   contact=CONTACT[args.room], overlap_measure="depth", contact_gap_weight=args.contact_gap_weight,
+                   contact_gap=args.contact_gap)
     out, before, after = [], [], []
     for start in range(0, len(layouts), 50):
         batch = SceneBatch.from_layouts(layouts[start:start + 50])
