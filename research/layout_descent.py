@@ -11,9 +11,9 @@ Each room's objects move on the floor (x and z; heights, sizes, yaws and classes
 :func:`agents.descent_imitation.descend_layouts` (Adam on :func:`agents.physics_gradient.layout_penalty`), at the
 weights of the depth configs (`experiments/ablations/stage1_ROOM_depth.yaml`): each overlapping pair its penetration
 depth, the out-of-bound area weighed 5 (``--out-of-bound-weight``), the data's contact spared (seat-table in living
-and dining rooms, nightstand-bed in bedrooms); ``--reach-weight`` adds the walkway term, ``--out-of-bound-shrink 0`` charges the whole
-footprint's area outside (R_out spares 0.05 m a side; without the margin the walkway term rests objects just through a
-wall). The contact pairs are not charged (depth) unless ``--contact-gap-weight`` draws each to a gap, as
+and dining rooms, nightstand-bed in bedrooms); ``--reach-weight`` adds the walkway term, ``--out-of-bound-shrink 0``
+charges the whole footprint's area outside (R_out spares 0.05 m a side; without the margin the walkway term rests
+objects just through a wall). The contact pairs are not charged (depth) unless ``--contact-gap-weight`` draws each to a gap, as
 ``ddpo.contact_gap_weight`` does.
 """
 
