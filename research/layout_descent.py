@@ -13,8 +13,8 @@ weights of the depth configs (`experiments/ablations/stage1_ROOM_depth.yaml`): e
 depth, the out-of-bound area weighed 5 (``--out-of-bound-weight``), the data's contact spared (seat-table in living
 and dining rooms, nightstand-bed in bedrooms); ``--reach-weight`` adds the walkway term, ``--out-of-bound-shrink 0``
 charges the whole footprint's area outside (R_out spares 0.05 m a side; without the margin the walkway term rests
-objects just through a wall). The contact pairs are not charged (depth) unless ``--contact-gap-weight`` draws each to a gap, as
-``ddpo.contact_gap_weight`` does.
+objects just through a wall). The contact pairs are not charged (depth) unless ``--contact-gap-weight`` draws each
+to a gap, as ``ddpo.contact_gap_weight`` does.
 """
 
 from __future__ import annotations
