@@ -37,7 +37,7 @@ def main() -> None:
     from iarcs_env import geometry as geo
     from iarcs_env import relations as rel
     from iarcs_env.datasets.procedural import generate_layouts
-    from iarcs_env.scene import SceneBatch, floor_half_extents, footprint_reach
+    from iarcs_env.scene import SceneBatch, floor_half_extents, translation_scale
 
     prior = ScenePrior.load_default("bedroom")
     spec = prior.spec
@@ -47,9 +47,9 @@ def main() -> None:
     bed = rel.class_mask(b.labels, spec.classes, ["bed"])
     nightstand = rel.class_mask(b.labels, spec.classes, ["nightstand"])
     valid = b.labels != spec.empty_index
-    # the room frame's scale of each object's x and z (translation_scale): its free half-range in the floor's box
-    free = (floor_half_extents(b.floors)[:, None]
-            - footprint_reach(b.half_sizes[..., 0:3:2], torch.cos(b.yaws), torch.sin(b.yaws))).clamp_min(0.05)
+    # the room frame's scale of each object's x and z: its free half-range in the floor's box
+    _, hi = translation_scale(prior.stats, b.translations, floor_half_extents(b.floors), b.half_sizes, b.yaws)
+    free = hi[..., 0:3:2]
     errors = {t: ([], []) for t in args.t}  # (side told by the position only, blocked mirrors ruled out)
     blocked_share = []
     for i in torch.nonzero((bed.sum(1) == 1) & nightstand.any(1))[:, 0].tolist():
