@@ -2,8 +2,9 @@
 on ``--rooms`` training floors (the config's floor seed), each descended once (``agents/descent_imitation.py``'s
 targets, the config's penalty), then the adapter trained offline for ``--epochs`` passes over them on the one step
 whose prediction is the room sampled (t = 0): x0_hat(x_t) regressed onto the prior's own x0_hat plus the descent's
-move. After each pass, on ``--other-floors`` other floors (seed 4242, the noise fixed): the penalty and Col_obj of
-the rooms sampled with the adapter and (first) without it.
+move. After each pass: how well it fits its rooms (the share of the move's mean square its prediction explains on
+them, as ``research/descent_probe.py`` scores it) and how far that carries over (on ``--other-floors`` other floors,
+seed 4242, the noise fixed: the penalty and Col_obj of the rooms sampled with the adapter and, first, without it).
 
     .venv/bin/python research/descent_offline.py experiments/ablations/stage1_livingroom_descent.yaml \
         --rooms 16384 --epochs 10 --cache ROOMS.pt --out RUN [--init RUN --lr 0.003]
@@ -77,6 +78,7 @@ def main(argv=None) -> None:
 
     other = held_out_floors(cfg.room, args.other_floors)
     with policy.base_policy():
+        prior_x0 = predictions(policy.predict_x0, x_in, cond).clamp(-1, 1)
         print(f"{len(other)} other floors, the prior: {sampled_on(policy, cfg, other, weights)}")
     optimizer = torch.optim.Adam(policy.trainable_parameters(), lr=args.lr or algo.config.learning_rate)
     policy.model.eval()
@@ -91,12 +93,27 @@ def main(argv=None) -> None:
             torch.nn.utils.clip_grad_norm_(policy.trainable_parameters(), algo.config.max_grad_norm)
             optimizer.step()
             losses.append(loss.item())
-        print(f"epoch {epoch}: loss {sum(losses) / len(losses):.5f}; {len(other)} other floors, the adapter: "
+        fit = explained(predictions(policy.predict_x0, x_in, cond).clamp(-1, 1) - prior_x0, target - prior_x0, weight)
+        print(f"epoch {epoch}: loss {sum(losses) / len(losses):.5f}, explains {fit:.0%} of the move on its rooms;"
+              f" {len(other)} other floors, the adapter: "
               f"{sampled_on(policy, cfg, other, weights)}", flush=True)
         if args.out:  # a run folder iarcs sample --checkpoint reads, after every pass
             Path(args.out).mkdir(parents=True, exist_ok=True)
             (Path(args.out) / "config.yaml").write_text(yaml.safe_dump(dataclasses.asdict(cfg), sort_keys=False))
             policy.save_adapter(Path(args.out) / ADAPTERS_DIR)
+
+
+def explained(pred: torch.Tensor, move: torch.Tensor, weight: torch.Tensor) -> float:
+    """1 - the weighted mean square of ``pred - move`` over that of ``move``."""
+    return 1.0 - float(((pred - move).square() * weight).sum() / (move.square() * weight).sum())
+
+
+def predictions(fn, x: torch.Tensor, cond: torch.Tensor, chunk: int = 256) -> torch.Tensor:
+    """``fn(x, t = 0, cond)`` (a policy's or a network's last-step prediction) over the rooms in chunks, no grad."""
+    t0 = torch.zeros(chunk, dtype=torch.long)
+    with torch.no_grad():
+        return torch.cat([fn(x[i:i + chunk], t0[:len(x[i:i + chunk])], cond[i:i + chunk])
+                          for i in range(0, len(x), chunk)])
 
 
 def build_with_targets(cfg, lora_targets: str | None = None):

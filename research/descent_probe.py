@@ -12,7 +12,10 @@ what the adapter learns. The adapter explaining more (measured: docs/results/sta
 features help, and the number of rooms is what limits it.
 
     .venv/bin/python research/descent_probe.py experiments/ablations/stage1_livingroom_descent.yaml \
-        --cache ROOMS.pt --held-out OTHER.pt --run RUN --lora-targets REGEX --epochs 10
+        --cache ROOMS.pt --held-out OTHER.pt --run RUN --lora-targets REGEX --epochs 10 [--held-out-floor-seed S]
+
+With ``--held-out`` one of the ``--cache`` files and ``--held-out-floor-seed`` its config's floor seed, it scores
+how well the run fits the rooms it trained on, and what that fit does to their collisions and walkways.
 """
 
 from __future__ import annotations
@@ -29,19 +32,10 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))  # its sibling script
 from agents.denoiser import SceneDenoiser  # noqa: E402
 from agents.physics_gradient import adapted_object_weights  # noqa: E402
 from agents.train import ADAPTERS_DIR, load_train_config  # noqa: E402
-from descent_offline import build_with_targets, load_rooms  # noqa: E402
-
-
-def explained(pred: torch.Tensor, move: torch.Tensor, weight: torch.Tensor) -> float:
-    """1 - the weighted mean square of ``pred - move`` over that of ``move``."""
-    return 1.0 - float(((pred - move).square() * weight).sum() / (move.square() * weight).sum())
-
-
-def predictions(fn, x: torch.Tensor, cond: torch.Tensor, chunk: int = 256) -> torch.Tensor:
-    t0 = torch.zeros(chunk, dtype=torch.long)
-    with torch.no_grad():
-        return torch.cat([fn(x[i:i + chunk], t0[:len(x[i:i + chunk])], cond[i:i + chunk])
-                          for i in range(0, len(x), chunk)])
+from descent_offline import build_with_targets, explained, load_rooms, predictions  # noqa: E402
+from iarcs_env.datasets.procedural import generate_layouts  # noqa: E402
+from iarcs_env.metrics import evaluate_layouts  # noqa: E402
+from iarcs_env.scene import SceneBatch  # noqa: E402
 
 
 def main(argv=None) -> None:
@@ -52,6 +46,9 @@ def main(argv=None) -> None:
     parser.add_argument("--held-out", required=True, help="a cache file of other floors")
     parser.add_argument("--run", help="a descent_offline.py --out folder whose adapter to score")
     parser.add_argument("--lora-targets", help="the run's --lora-targets")
+    parser.add_argument("--held-out-floor-seed", type=int,
+                        help="the floor seed the --held-out file was made with: also the Col_obj and R_reach of its rooms "
+                             "as the prior made them, descended, and (with --run) as the adapter makes them")
     parser.add_argument("--epochs", type=int, default=10)
     parser.add_argument("--batch", type=int, default=64)
     parser.add_argument("--lr", type=float, default=1e-3)
@@ -83,6 +80,14 @@ def main(argv=None) -> None:
         policy.load_adapter(Path(args.run) / ADAPTERS_DIR / cfg.adapter, cfg.adapter)
         print(f"the adapter of {args.run}: explains {score(adapter_move, held):.1%} of the held-out rooms' move, "
               f"{score(adapter_move, seen):.1%} of as many trained-on rooms'")
+    if args.held_out_floor_seed is not None:
+        floors = [lay.centred().floor for lay in generate_layouts(cfg.room, held_count, seed=args.held_out_floor_seed)]
+        rooms = {"the prior": x0[held], "descended": target[held]}
+        if args.run:
+            rooms["the adapter"] = x0[held] + adapter_move(held)
+        for name, x in rooms.items():
+            r = evaluate_layouts(SceneBatch.decode(x.clamp(-1, 1), prior.stats, floors).to_layouts())
+            print(f"the held-out rooms, {name}: Col_obj {r['Col_obj']:.1%}, R_reach {r['R_reach']:.1%}")
 
     fresh = SceneDenoiser(prior.denoiser.config, prior.denoiser.feature_dim)
     fresh.set_metric_scale(prior.stats)

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import importlib.util
 import json
+import re
 import sys
 from pathlib import Path
 
@@ -389,6 +390,7 @@ def test_descent_offline_caches_its_rooms_and_writes_a_run_folder_that_samples(t
     assert len(rooms["x_in"]) == len(rooms["cond"]) == len(rooms["target"]) == 6
     assert rooms["target"].shape == rooms["x_in"].shape and rooms["target"].abs().max() <= 1
     assert "6 rooms in" in first and "epoch 1: loss" in first and "the prior: penalty" in first
+    assert "of the move on its rooms" in first
     load("descent_offline").main(args + ["--init", str(tmp_path / "offline")])
     assert "rooms in" not in capsys.readouterr().out  # read from the cache
     policy, cfg = load_trained_policy(tmp_path / "offline")
@@ -414,6 +416,13 @@ def test_descent_probe_scores_the_adapter_and_fits_a_fresh_network_to_the_moves(
     assert lines[1].startswith(f"the adapter of {run}: explains")
     shares = [float(line.split("explains ")[1].split("%")[0]) for line in lines[2:]]
     assert len(shares) == 20 and shares[-1] > max(shares[0], 0.0)  # it learns the moves it is shown
+    from agents.train import load_train_config
+    load("descent_probe").main([str(config), "--cache", rooms, "--held-out", rooms, "--run", run, "--epochs", "0",
+                                "--held-out-floor-seed", str(load_train_config(config).floor_seed)])
+    found = re.findall(r"the held-out rooms, (.+): Col_obj ([\d.]+)%, R_reach ([\d.]+)%", capsys.readouterr().out)
+    rates = {name: (float(col), float(reach)) for name, col, reach in found}
+    assert list(rates) == ["the prior", "descended", "the adapter"]
+    assert all(0 <= v <= 100 for pair in rates.values() for v in pair)
 
 
 def test_descent_fit_takes_the_batch_towards_its_moves_and_samples_other_floors(tmp_path, capsys):
