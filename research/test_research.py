@@ -440,6 +440,24 @@ def test_descent_fit_takes_the_batch_towards_its_moves_and_samples_other_floors(
     assert "4 other floors, with the adapter: penalty" in lines[2] and "the prior: penalty" in lines[3]
 
 
+def test_best_of_floor_metrics_picks_each_floors_cleanest_sampling(tmp_path, capsys):
+    """Two samplings of two floors of 4 ground objects each: floor 0 is clean in the second sampling only, floor 1 in
+    the first only; each floor's best is the clean one."""
+    def report(path, scenes):
+        path.write_text(json.dumps({"per_scene": [{"ground_objects": 4, "colliding": c, "unreachable_objects": u}
+                                                   for c, u in scenes]}))
+        return str(path)
+
+    a = report(tmp_path / "a.json", [([0, 1], [2]), ([], [])])
+    b = report(tmp_path / "b.json", [([], []), ([0, 1, 2], [3])])
+    load("best_of_floor_metrics").main([a, b])
+    lines = capsys.readouterr().out.splitlines()
+    assert lines == ["2 floors, 2 samplings each", "all samplings: Col_obj 31.2%, R_reach 87.5%",
+                     "each floor's best: Col_obj 0.0%, R_reach 100.0%"]
+    with pytest.raises(SystemExit, match="different numbers of scenes"):
+        load("best_of_floor_metrics").main([a, report(tmp_path / "c.json", [([], [])])])
+
+
 def test_task_by_floor_and_same_floors_tell_the_floors_choice_from_the_samplings(tmp_path, capsys):
     """research/task_by_floor.py and tv_bed_facing.py --same-floors on two samplings of two floors: on the first the
     bed faces the room's length (passes) in one sampling and a wall 2 m away (fails) in the other; the second holds
