@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import argparse
 import json
+from pathlib import Path
 
 import numpy as np
 
@@ -19,7 +20,7 @@ def main(argv=None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("reports", nargs="+", help="evaluate reports of samplings of the same floors, in one order")
     args = parser.parse_args(argv)
-    scenes = [json.load(open(path))["per_scene"] for path in args.reports]
+    scenes = [json.loads(Path(path).read_text())["per_scene"] for path in args.reports]
     if len({len(s) for s in scenes}) != 1:
         raise SystemExit(f"the reports hold different numbers of scenes ({', '.join(str(len(s)) for s in scenes)}): "
                          f"give samplings of the same floors")
