@@ -90,10 +90,11 @@ class DiffusionPolicy(nn.Module):
         eta: DDIM stochasticity; 1 gives the DDPM-like variance DDPO needs.
         lora_r, lora_alpha: LoRA rank and scale.
         adapted: feature groups of :data:`FEATURE_GROUPS` the first adapter adapts (empty: all).
+        adapted_classes: classes or class groups whose objects the first adapter changes (empty: all).
     """
 
     def __init__(self, prior: ScenePrior, adapter: str = "stage1", num_steps: int = 20, eta: float = 1.0,
-                 lora_r: int = 16, lora_alpha: int = 16, adapted=()):
+                 lora_r: int = 16, lora_alpha: int = 16, adapted=(), adapted_classes=()):
         super().__init__()
         self.prior = prior
         self.num_steps = num_steps
@@ -109,9 +110,10 @@ class DiffusionPolicy(nn.Module):
         """adapter -> the adapter its non-adapted features follow (None: the prior)."""
         self.required: dict[str, tuple[RequiredObject, ...]] = {adapter: ()}
         """adapter -> the objects its task needs in every room (:mod:`iarcs_env.required_objects`)."""
-        self.adapted_classes: dict[str, tuple[str, ...]] = {adapter: ()}
+        self.adapted_classes: dict[str, tuple[str, ...]] = {}
         """adapter -> the classes or class groups whose objects it changes (empty: all); the rest follow its
         reference."""
+        self.adapted_classes[adapter] = self._check_classes(adapted_classes, adapter)
         self._adapters_off = False
 
     # --- adapters ---------------------------------------------------------------------------------------
@@ -152,9 +154,10 @@ class DiffusionPolicy(nn.Module):
         """``names`` (classes or class groups an adapter changes) checked against the room and the adapter."""
         names = tuple(names)
         if names:
-            if not self.required.get(adapter):
-                raise ValueError("adapting only some classes' objects needs the rooms' classes given: add "
-                                 "required_objects (e.g. [{classes: support_surface, add: nightstand}])")
+            if not self.required.get(adapter) and "class" in self.adapted[adapter]:
+                raise ValueError("adapting only some classes' objects needs the classes decided elsewhere: leave "
+                                 "class out of adapt, or add required_objects (e.g. [{classes: support_surface, "
+                                 "add: nightstand}])")
             if not self.class_filter(names).any():
                 raise ValueError(f"adapt_classes {list(names)} names no object class of a {self.prior.spec.name}")
         return names
@@ -285,9 +288,12 @@ class DiffusionPolicy(nn.Module):
                 fixed = fixed | ~self.class_filter(only).to(classes.device)[classes]
             keep = keep | fixed.to(keep.device)[..., None]
         elif "class" not in self.adapted[name] and not self.required.get(name):
-            # slots the reference leaves empty stay the reference's
-            predicted = self.schedule.predict_x0(x_t, t, base)[..., FEATURE_GROUPS["class"]]
-            keep = keep | (predicted.argmax(-1) == predicted.shape[-1] - 1)[..., None]
+            # slots the reference leaves empty, or fills with a class the adapter does not change, stay its
+            predicted = self.schedule.predict_x0(x_t, t, base)[..., FEATURE_GROUPS["class"]].argmax(-1)
+            fixed = predicted == self.prior.spec.empty_index
+            if self.adapted_classes.get(name):
+                fixed = fixed | ~self.class_filter(self.adapted_classes[name]).to(predicted.device)[predicted]
+            keep = keep | fixed[..., None]
         return torch.where(keep, base, eps)
 
     def forward(self, x_t: torch.Tensor, t: torch.Tensor, floor: torch.Tensor,

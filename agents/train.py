@@ -51,8 +51,9 @@ class TrainConfig:
     with those classes given (it must not adapt ``class``). Saved with the adapter, so its samples hold them too."""
     adapt_classes: list = field(default_factory=list)
     """Classes or class groups (iarcs_env.relations.CLASS_GROUPS) whose objects the adapter changes, e.g.
-    ``[support_surface]``; the other objects follow ``init_adapter`` (with ``required_objects``, which gives the
-    rooms' classes). Empty: every object, or with ``init_adapter`` the objects that adapter changes."""
+    ``[support_surface]``; the other objects follow ``init_adapter`` or the prior. Which object a slot holds is given
+    (``required_objects``) or, with ``adapt`` without ``class``, the reference's own prediction. Empty: every
+    object, or with ``init_adapter`` the objects that adapter changes."""
     algorithm: str = "ddpo"
     """ddpo (= ddpo-is), ddpo-sf, physics-gradient (agents/physics_gradient.py) or descent-imitation
     (agents/descent_imitation.py)."""
@@ -121,10 +122,10 @@ class TrainConfig:
         if self.required_objects and "class" in self.adapt:
             raise ValueError("required_objects gives the rooms' classes, so adapt cannot hold class: use e.g. "
                              "adapt: [translation, size, yaw]")
-        if self.adapt_classes and not self.required_objects:
-            raise ValueError("adapt_classes needs required_objects (the rooms' classes given, e.g. "
-                             "[{classes: support_surface, add: nightstand}]): without them the adapter decides "
-                             "which object a slot holds")
+        if self.adapt_classes and not self.required_objects and (not self.adapt or "class" in self.adapt):
+            raise ValueError("adapt_classes needs the classes decided elsewhere: adapt without class (e.g. "
+                             "[position, yaw]: each slot's class is then the reference's), or required_objects "
+                             "(the rooms' classes given, e.g. [{classes: support_surface, add: nightstand}])")
         self.required()  # checked here, so a bad entry fails when the config is read
 
     def required(self) -> list:
@@ -176,7 +177,7 @@ def build(cfg: TrainConfig, tensorboard_log: Path | None = None, task_reward=Non
 
     prior = build_prior(cfg)
     policy = DiffusionPolicy(prior, adapter="scratch" if cfg.init_adapter else cfg.adapter, num_steps=cfg.num_steps,
-                             eta=cfg.eta, adapted=cfg.adapt)
+                             eta=cfg.eta, adapted=cfg.adapt, adapted_classes=() if cfg.init_adapter else cfg.adapt_classes)
     if cfg.init_adapter:  # the trained adapter starts as a copy of init_adapter
         path = stage1_adapter_path(cfg.room) if cfg.init_adapter == "default" else cfg.init_adapter
         src = policy.load_adapter(path, name="init")

@@ -7,7 +7,7 @@ import pytest
 import torch
 
 from agents.ddpo import DDPO
-from agents.policy import ADAPTED_FILE, DiffusionPolicy
+from agents.policy import ADAPTED_FILE, FEATURE_GROUPS, DiffusionPolicy
 from agents.train import TrainConfig
 from iarcs_env.relations import class_mask
 from iarcs_env.required_objects import RequiredObject, with_required
@@ -217,9 +217,34 @@ def test_an_adapter_of_some_classes_leaves_the_other_objects_to_its_reference_an
     loaded.load_adapter(folder, "task")
     loaded.add_adapter("phase2", init_from="task", required=NEEDS)  # a second phase keeps the filter
     assert loaded.adapted_classes["task"] == loaded.adapted_classes["phase2"] == ("bed", "nightstand")
-    with pytest.raises(ValueError, match="needs the rooms' classes given"):
-        policy.add_adapter("bad", init_from="stage1", adapted_classes=["bed"])
+    with pytest.raises(ValueError, match="needs the classes decided elsewhere"):
+        policy.add_adapter("bad", init_from="stage1", adapted=("position", "class"), adapted_classes=["bed"])
     with pytest.raises(ValueError, match="names no object class of a bedroom"):
         policy.add_adapter("bad2", init_from="stage1", required=NEEDS, adapted_classes=["dining_table"])
-    with pytest.raises(ValueError, match="adapt_classes needs required_objects"):
+    with pytest.raises(ValueError, match="adapt_classes needs the classes decided elsewhere"):
         TrainConfig(init_adapter="default", adapt_classes=["support_surface"])
+
+
+def test_a_stage1_adapter_of_some_classes_moves_only_the_objects_its_reference_gives_those_classes(tmp_path):
+    """Without given classes, a slot's class is the reference's prediction: an adapter of beds and nightstands leaves
+    every other slot (and the empty ones) to the prior, and the filter is saved with it and used in training."""
+    policy = DiffusionPolicy(tiny_prior(), adapter="stage1", num_steps=STEPS, adapted=("position", "yaw"),
+                             adapted_classes=["bed", "nightstand"])
+    perturb(policy, "stage1", 0)
+    x = torch.randn(len(FLOORS), policy.prior.num_slots, policy.prior.spec.feature_dim,
+                    generator=torch.Generator().manual_seed(2))
+    t, floor = torch.full((len(FLOORS),), 100), policy.prior.floor_condition(FLOORS)
+    with torch.no_grad():
+        adapted = policy.eps(x, t, floor)
+        with policy.base_policy():
+            base = policy.eps(x, t, floor)
+    predicted = policy.schedule.predict_x0(x, t, base)[..., FEATURE_GROUPS["class"]].argmax(-1)
+    beds = class_mask(predicted, CLASSES, ["bed", "nightstand"])
+    assert beds.any() and (~beds).any()
+    assert torch.equal(adapted[~beds], base[~beds])
+    assert (adapted - base).abs()[beds][:, [0, 2, 6, 7]].min() > 0  # position (x, z) and yaw move
+    folder = policy.save_adapter(tmp_path)
+    loaded = DiffusionPolicy(tiny_prior(), adapter="scratch", num_steps=STEPS)
+    assert loaded.adapted_classes[loaded.load_adapter(folder, "stage1")] == ("bed", "nightstand")
+    cfg = TrainConfig(adapt=["position", "yaw"], adapt_classes=["bed", "nightstand"])  # no required objects needed
+    assert cfg.adapt_classes == ["bed", "nightstand"]
