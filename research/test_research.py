@@ -319,6 +319,7 @@ def test_chair_placement_measures_each_chairs_gap_and_facing():
     res = script.chair_placement([room, make_layout([box("dining_chair", 1.0, 1.0, 0.2, 0.2)], room="diningroom")])
     assert res["rooms"] == 1 and res["holds"] == 1.0 and res["chairs"] == 3 and res["at_table"] == 2
     assert res["touching"] == pytest.approx(1 / 3) and res["near"] == pytest.approx(2 / 3)
+    assert res["pulled_out"] == pytest.approx(2 / 3)
     assert res["facing_near"] == 1.0 and res["gap_median"] == pytest.approx(0.3)
 
 
