@@ -177,7 +177,8 @@ def build(cfg: TrainConfig, tensorboard_log: Path | None = None, task_reward=Non
 
     prior = build_prior(cfg)
     policy = DiffusionPolicy(prior, adapter="scratch" if cfg.init_adapter else cfg.adapter, num_steps=cfg.num_steps,
-                             eta=cfg.eta, adapted=cfg.adapt, adapted_classes=() if cfg.init_adapter else cfg.adapt_classes)
+                             eta=cfg.eta, adapted=cfg.adapt,
+                             adapted_classes=() if cfg.init_adapter else cfg.adapt_classes)
     if cfg.init_adapter:  # the trained adapter starts as a copy of init_adapter
         path = stage1_adapter_path(cfg.room) if cfg.init_adapter == "default" else cfg.init_adapter
         src = policy.load_adapter(path, name="init")

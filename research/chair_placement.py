@@ -44,8 +44,8 @@ def chair_placement(layouts, chunk: int = 100) -> dict:
                 facing.append(bool(looks[k, i, j]))
     gaps, facing, near = np.array(gaps), np.array(facing), np.array(gaps) <= rf.CHAIR_GAP + rf.EPS
     return {"rooms": len(chairs), "holds": float(np.mean(np.array(at_table) >= 2)), "chairs": float(np.mean(chairs)),
-            "at_table": float(np.mean(at_table)), "touching": float(np.mean(gaps <= 1e-6)), "pulled_out": float(np.mean(gaps >= PULLED_OUT)),
-            "near": float(near.mean()),
+            "at_table": float(np.mean(at_table)), "touching": float(np.mean(gaps <= 1e-6)),
+            "pulled_out": float(np.mean(gaps >= PULLED_OUT)), "near": float(near.mean()),
             "facing_near": float(facing[near].mean()), "gap_median": float(np.median(gaps))}
 
 
@@ -61,7 +61,8 @@ def main(argv=None) -> None:
         name, _, path = arg.rpartition("=")
         c = chair_placement(load_layouts(path, args.room))
         print(f"| {name or Path(path).stem} | {c['rooms']} | {c['holds']:.1%} | {c['chairs']:.2f} "
-              f"| {c['at_table']:.2f} | {c['touching']:.1%} | {c['pulled_out']:.1%} | {c['near']:.1%} | {c['facing_near']:.1%} "
+              f"| {c['at_table']:.2f} | {c['touching']:.1%} | {c['pulled_out']:.1%} | {c['near']:.1%} "
+              f"| {c['facing_near']:.1%} "
               f"| {c['gap_median']:.2f} |")
 
 
