@@ -110,10 +110,9 @@ class DiffusionPolicy(nn.Module):
         """adapter -> the adapter its non-adapted features follow (None: the prior)."""
         self.required: dict[str, tuple[RequiredObject, ...]] = {adapter: ()}
         """adapter -> the objects its task needs in every room (:mod:`iarcs_env.required_objects`)."""
-        self.adapted_classes: dict[str, tuple[str, ...]] = {}
+        self.adapted_classes: dict[str, tuple[str, ...]] = {adapter: self._check_classes(adapted_classes, adapter)}
         """adapter -> the classes or class groups whose objects it changes (empty: all); the rest follow its
         reference."""
-        self.adapted_classes[adapter] = self._check_classes(adapted_classes, adapter)
         self._adapters_off = False
 
     # --- adapters ---------------------------------------------------------------------------------------

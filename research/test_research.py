@@ -323,6 +323,33 @@ def test_chair_placement_measures_each_chairs_gap_and_facing():
     assert res["facing_near"] == 1.0 and res["gap_median"] == pytest.approx(0.3)
 
 
+def test_object_moves_reads_each_class_move_and_what_it_cost_from_report_pairs(tmp_path):
+    from iarcs_env.datasets import save_layouts
+
+    script = load("object_moves")
+    table = box("dining_table", 2.0, 1.5, 0.6, 0.4)
+    before = [make_layout([table, box("dining_chair", 2.0, 0.9, 0.2, 0.2), box("cabinet", 3.5, 0.3, 0.4, 0.2)],
+                          room="diningroom"),
+              make_layout([table], room="diningroom")]
+    after = [make_layout([table, box("dining_chair", 2.0, 0.6, 0.2, 0.2), box("cabinet", 3.9, 0.3, 0.4, 0.2)],
+                         room="diningroom"),
+             make_layout([table, box("dining_chair", 1.0, 1.0, 0.2, 0.2)], room="diningroom")]  # not paired
+    reports = []
+    for name, rooms, scored in (("base", before, [([], []), ([], [])]), ("run", after, [([1], [2]), ([], [])])):
+        save_layouts(rooms, tmp_path / f"{name}.json")
+        report = {"scenes_file": f"{name}.json", "room_type": "diningroom",
+                  "per_scene": [{"unreachable_objects": u, "out_of_bound": o} for u, o in scored]}
+        (tmp_path / f"{name}_report.json").write_text(json.dumps(report))
+        reports.append(tmp_path / f"{name}_report.json")
+    rows, paired = script.object_moves([tuple(reports)])
+    assert paired == 1 and rows["dining_table"]["objects"] == 2
+    assert rows["dining_chair"]["mean_move"] == pytest.approx(0.3)
+    assert rows["cabinet"]["mean_move"] == pytest.approx(0.4)
+    assert rows["dining_table"]["mean_move"] == 0.0
+    assert (rows["dining_chair"]["unreachable_base"], rows["dining_chair"]["unreachable_run"]) == (0, 1)
+    assert (rows["cabinet"]["out_base"], rows["cabinet"]["out_run"]) == (0, 1)
+
+
 def test_gradient_vs_count_compares_prior_and_adapter_on_the_same_noise(tmp_path):
     from conftest import write_tiny_train_config
     from experiments.cli import main

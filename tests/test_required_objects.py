@@ -227,7 +227,8 @@ def test_an_adapter_of_some_classes_leaves_the_other_objects_to_its_reference_an
 
 def test_a_stage1_adapter_of_some_classes_moves_only_the_objects_its_reference_gives_those_classes(tmp_path):
     """Without given classes, a slot's class is the reference's prediction: an adapter of beds and nightstands leaves
-    every other slot (and the empty ones) to the prior, and the filter is saved with it and used in training."""
+    every other slot (and the empty ones) to the prior; the filter is saved with it, and a config needs no required
+    objects for it."""
     policy = DiffusionPolicy(tiny_prior(), adapter="stage1", num_steps=STEPS, adapted=("position", "yaw"),
                              adapted_classes=["bed", "nightstand"])
     perturb(policy, "stage1", 0)
