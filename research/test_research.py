@@ -73,6 +73,12 @@ def test_collision_pairs_separates_nightstand_bed_contact_from_other_collisions(
     assert script.collisions([deeper])["Col_obj_beyond_contact"] == 1  # 0.064 m^3: more than the data's contact
     # in a dining room the seat-table contact is spared up to 0.11 m^3: the chair 0.15 m into its desk (0.045)
     assert script.collisions([desk], "diningroom")["Col_obj_beyond_contact"] == 0
+    # with every other collision cleared, only the bed and its nightstand would still collide
+    assert res["Col_obj_contact_kept"] == pytest.approx(2 / 5)
+    # a chair tucked under its desk stays colliding; a second chair that only touches the first does not
+    crowded = make_layout([box("desk", 1.0, 1.0, 0.6, 0.3), box("chair", 1.0, 1.4, 0.25, 0.25),
+                           box("chair", 1.3, 1.75, 0.25, 0.25)])
+    assert script.collisions([crowded], "diningroom")["Col_obj_contact_kept"] == pytest.approx(2 / 3)
 
 
 def test_gradient_noise_tells_signal_from_noise():
