@@ -18,7 +18,8 @@ batch's device. They are registered by name in :data:`REWARDS` (add your own wit
   ``1.0 * coverage - 0.1 * regions + 0.5 * clearance`` where ``coverage`` = cells of the largest free
   4-connected region / free cells of the same room with no furniture (1 for an empty room), ``regions`` =
   number of free regions, ``clearance`` = mean distance (m) from a free cell to the nearest blocked cell
-  (Euclidean distance transform).
+  (Euclidean distance transform). With ``per_object`` (our addition, default 0) also minus that much per ground
+  object the agent cannot reach (the R_reach metric's count, on this grid).
 * ``floor_contact`` (our addition): +``bonus`` (1) when every ground object's bottom is within ``tolerance``
   (0.05 m, the R_off_floor metric's) of the floor, otherwise minus the total distance (m) beyond it of those
   that are not, sunk or lifted. Without it an adapter that may change an object's elevation passes a height
@@ -180,13 +181,19 @@ def boundary_reward(batch: SceneBatch, shrink: float = geo.OUT_OF_BOUND_SHRINK,
 @register_reward("accessibility")
 @single_thread()
 def accessibility_reward(batch: SceneBatch, cell: float = 0.1, agent_radius: float = geo.AGENT_RADIUS,
-                         w_coverage: float = 1.0, w_regions: float = 0.1, w_clearance: float = 0.5) -> torch.Tensor:
-    """``w_coverage * coverage - w_regions * regions + w_clearance * clearance`` (see the module doc)."""
+                         w_coverage: float = 1.0, w_regions: float = 0.1, w_clearance: float = 0.5,
+                         per_object: float = 0.0) -> torch.Tensor:
+    """``w_coverage * coverage - w_regions * regions + w_clearance * clearance`` (see the module doc); minus
+    ``per_object`` for each ground object the agent cannot reach (the R_reach metric's count, on this grid)."""
     space = free_space(batch.floors, batch.translations, batch.half_sizes, batch.yaws, batch.ground_mask,
-                           cell=cell, radius=agent_radius, reach=False, clearance=w_clearance != 0)
+                           cell=cell, radius=agent_radius, reach=per_object != 0, clearance=w_clearance != 0)
     coverage = np.where(space.floor_cells > 0, space.largest_cells / np.maximum(space.floor_cells, 1), 0.0)
     clearance = np.nan_to_num(space.clearance) if w_clearance else 0.0
-    return _out(w_coverage * coverage - w_regions * space.regions + w_clearance * clearance, batch)
+    reward = w_coverage * coverage - w_regions * space.regions + w_clearance * clearance
+    if per_object:
+        unreachable = batch.ground_mask.cpu().numpy() & ~space.reach
+        reward = reward - per_object * unreachable.sum(1)
+    return _out(reward, batch)
 
 
 @register_reward("floor_contact")

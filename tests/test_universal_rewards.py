@@ -6,7 +6,7 @@ import pytest
 import torch
 
 import shapely_reference as ref
-from iarcs_env.metrics import batch_float64
+from iarcs_env.metrics import batch_float64, evaluate_batch
 from iarcs_env.scene import SceneBatch
 from iarcs_env.stats import DatasetStats
 from rewards import (REWARDS, CompositeReward, accessibility_reward, boundary_reward, class_frequency_reward,
@@ -113,6 +113,18 @@ def test_accessibility_reward_prefers_an_open_room_to_a_split_one():
     assert r[0] > r[1] > r[2]
     parts = accessibility_reward(batch(split), cell=0.05, w_coverage=0, w_clearance=0)
     assert parts[0].item() == pytest.approx(-0.2)  # two regions
+
+
+def test_accessibility_reward_charges_each_unreachable_object_as_r_reach_counts_it():
+    wall = box("wardrobe", 1.5, 1.5, 0.1, 1.5, hy=1.0)  # splits the room; the agent walks the larger side
+    stranded = make_layout([wall, box("nightstand", 0.5, 1.5, 0.25, 0.25)])
+    reachable = make_layout([wall, box("nightstand", 3.0, 1.5, 0.25, 0.25)])
+    only = dict(cell=0.05, w_coverage=0, w_regions=0, w_clearance=0, per_object=2.0)
+    r = accessibility_reward(batch(stranded, reachable), **only)
+    assert r.tolist() == [-2.0, 0.0]  # the nightstand on the small side, at 2 per object
+    assert accessibility_reward(batch(stranded), cell=0.05, w_coverage=0, w_clearance=0)[0].item() == pytest.approx(-0.2)
+    unreachable = evaluate_batch(batch(stranded, reachable)).scenes
+    assert [len(s.unreachable_objects) for s in unreachable] == [1, 0]  # the metric agrees
 
 
 def test_object_count_prior_kl_and_log_prob():
