@@ -79,6 +79,12 @@ def test_collision_pairs_separates_nightstand_bed_contact_from_other_collisions(
     crowded = make_layout([box("desk", 1.0, 1.0, 0.6, 0.3), box("chair", 1.0, 1.4, 0.25, 0.25),
                            box("chair", 1.3, 1.75, 0.25, 0.25)])
     assert script.collisions([crowded], "diningroom")["Col_obj_contact_kept"] == pytest.approx(2 / 3)
+    # beyond the contact: the chair 0.15 m into the desk in a bedroom (no seat-table contact there), by its depth
+    assert res["beyond"] == {("chair", "desk"): [pytest.approx(0.15)]}
+    # a square turned 45 degrees, another off its corner: its bounds overlap it, the oriented boxes do not
+    turned = make_layout([box("wardrobe", 1.0, 1.0, 0.3, 0.3, yaw=np.pi / 4), box("cabinet", 1.55, 1.55, 0.2, 0.2)])
+    apart = script.collisions([turned])
+    assert apart["Col_obj"] == 0 and apart["Col_obj_by_bounds"] == 1
 
 
 def test_gradient_noise_tells_signal_from_noise():
