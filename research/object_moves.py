@@ -1,7 +1,10 @@
 """What an adapter did to each class of object, against the rooms it started from: per class, how far its objects
 moved on the floor in the rooms that hold the same objects both ways (an adapter sampled on the prior's noise, as
 ``iarcs sample`` does with the same floors and seed), and how many of them are unreachable (R_reach) and out of bound
-(R_out) in each. Reads ``iarcs evaluate`` reports (their ``per_scene`` lists and ``scenes_file``), in pairs.
+(R_out) in each; then where the walkway went: the rooms binned by the base room's R_walkable (the share of free floor
+in its largest region), with the unreachable objects base -> run in each bin and the rooms the run splits (R_walkable
+from WHOLE or more down under SPLIT). Reads ``iarcs evaluate`` reports (their ``per_scene`` lists and
+``scenes_file``), in pairs.
 
     .venv/bin/python research/object_moves.py PRIOR_S0_report.json RUN_S0_report.json [PRIOR_S1 RUN_S1 ...]
 """
@@ -59,6 +62,31 @@ def object_moves(pairs) -> tuple[dict[str, dict], int]:
             for c, n in counts["objects"].most_common()}, paired
 
 
+WALKABLE_BINS = (0.0, 0.6, 0.75, 0.85, 0.95, 1.0)
+"""Bins of the base room's R_walkable for :func:`reach_by_walkable` (the last bin takes 0.95-1.0 inclusive)."""
+WHOLE, SPLIT = 0.95, 0.9
+"""A room whose R_walkable is at least WHOLE in the base and under SPLIT in the run is counted as split by the run."""
+
+
+def reach_by_walkable(pairs) -> tuple[list[dict], int]:
+    """(per bin of the base room's R_walkable: rooms, unreachable objects in base and run; rooms split) over ``pairs``
+    of (base, run) report paths, room by room (the same floors and seed both ways)."""
+    rows = [{"lo": lo, "hi": hi, "rooms": 0, "unreachable_base": 0, "unreachable_run": 0}
+            for lo, hi in zip(WALKABLE_BINS[:-1], WALKABLE_BINS[1:])]
+    split = 0
+    for base_path, run_path in pairs:
+        base, run = (json.loads(Path(p).read_text())["per_scene"] for p in (base_path, run_path))
+        if len(base) != len(run):
+            raise SystemExit(f"{base_path} and {run_path} score different numbers of rooms: sample the same floors")
+        for b, r in zip(base, run):
+            row = next(x for x in rows if b["R_walkable"] < x["hi"] or x is rows[-1])
+            row["rooms"] += 1
+            row["unreachable_base"] += len(b["unreachable_objects"])
+            row["unreachable_run"] += len(r["unreachable_objects"])
+            split += b["R_walkable"] >= WHOLE and r["R_walkable"] < SPLIT
+    return rows, split
+
+
 def main(argv=None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("reports", nargs="+", help="iarcs evaluate reports: BASE RUN [BASE RUN ...]")
@@ -74,6 +102,12 @@ def main(argv=None) -> None:
               f"| {r['unreachable_base']} -> {r['unreachable_run']} | {r['out_base']} -> {r['out_run']} |")
     lost = sum(r["unreachable_run"] - r["unreachable_base"] for r in rows.values())
     print(f"unreachable objects: {lost:+d} in all")
+    bins, split = reach_by_walkable(list(zip(args.reports[::2], args.reports[1::2])))
+    print("\n| the base room's R_walkable | rooms | unreachable objects |")
+    print("|---|---:|---:|")
+    for b in bins:
+        print(f"| {b['lo']:.2f}-{b['hi']:.2f} | {b['rooms']} | {b['unreachable_base']} -> {b['unreachable_run']} |")
+    print(f"rooms split by the run (R_walkable >= {WHOLE} -> < {SPLIT}): {split}")
 
 
 if __name__ == "__main__":

@@ -362,6 +362,22 @@ def test_object_moves_reads_each_class_move_and_what_it_cost_from_report_pairs(t
     assert (rows["cabinet"]["out_base"], rows["cabinet"]["out_run"]) == (0, 1)
 
 
+def test_object_moves_bins_the_lost_walkway_by_the_base_rooms_walkable_share_and_counts_split_rooms(tmp_path):
+    script = load("object_moves")
+    scored = {"base": [(1.0, []), (0.97, [2]), (0.5, [1, 2, 3]), (0.96, [])],
+              "run": [(0.6, [1, 4]), (0.99, [2]), (0.8, [1]), (0.92, [])]}  # room 0 split; 3 stays above 0.9
+    paths = []
+    for name, rooms in scored.items():
+        report = {"per_scene": [{"R_walkable": w, "unreachable_objects": u} for w, u in rooms]}
+        (tmp_path / f"{name}.json").write_text(json.dumps(report))
+        paths.append(tmp_path / f"{name}.json")
+    rows, split = script.reach_by_walkable([tuple(paths)])
+    assert [r["rooms"] for r in rows] == [1, 0, 0, 0, 3]  # walkable 1.0 falls in the last bin
+    assert (rows[0]["unreachable_base"], rows[0]["unreachable_run"]) == (3, 1)
+    assert (rows[-1]["unreachable_base"], rows[-1]["unreachable_run"]) == (1, 3)
+    assert split == 1
+
+
 def test_gradient_vs_count_compares_prior_and_adapter_on_the_same_noise(tmp_path):
     from conftest import write_tiny_train_config
     from experiments.cli import main
