@@ -94,11 +94,6 @@ class DDPOConfig:
     contact_gap: float = 0.05
     """``physics-gradient`` only: the gap (m) between their bounds that ``contact_gap_weight`` draws a contact pair
     to; wider than the sampler's last steps move an object, or the pair ends up touching (Col_obj counts it)."""
-    contact_gap_walkway: bool = False
-    """``physics-gradient`` only: ``contact_gap_weight`` draws a pair out only where standing the drawn object (the
-    first class of its ``contact`` pair: the seat) at ``contact_gap`` narrows no passage below R_reach's agent (0.6
-    m wide); elsewhere the pair is left as it is. A chair pulled out towards a wall or a cabinet closes the walkway
-    behind it (``iarcs_env.clearance.room_to_pull``)."""
     uncharged_pairs: list | None = None
     """``physics-gradient`` only: class pairs (names or groups, e.g. ``[[seat, desk]]``) whose overlap is not
     charged: a chair half under its desk, the data's own contact (charged, chairs left their desks more often:

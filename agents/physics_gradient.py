@@ -46,9 +46,8 @@ import torch
 from tensordict import TensorDict
 
 from iarcs_env import geometry as geo
-from iarcs_env.clearance import reach_clearance, room_to_pull
+from iarcs_env.clearance import reach_clearance
 from iarcs_env.relation_fidelity import CHAIR_GAP
-from iarcs_env.relations import class_mask
 from iarcs_env.scene import SceneBatch, decode_geometry, floor_half_extents
 
 from rewards.universal import class_pairs, contact_pairs
@@ -68,7 +67,7 @@ def physics_penalty(x0: torch.Tensor, stats, floors, out_of_bound_weight: float 
                     out_of_bound_shrink: float = geo.OUT_OF_BOUND_SHRINK, contact: dict | None = None,
                     contact_gap_weight: float = 0.0, contact_gap: float = DDPOConfig.contact_gap,
                     overlap_measure: str = "volume", uncharged_pairs: list | None = None,
-                    reach_weight: float = 0.0, contact_gap_walkway: bool = False) -> torch.Tensor:
+                    reach_weight: float = 0.0) -> torch.Tensor:
     """(B,) ``overlap_weight`` times the overlap volume (m^3; or depth, ``overlap_measure``) of every pair of ground
     objects' axis-aligned bounds plus ``out_of_bound_weight`` times the out-of-bound area (m^2, footprints shrunk by
     ``out_of_bound_shrink`` m, R_out's 0.05 m by default) of every object plus ``floor_weight`` times the ground
@@ -83,8 +82,7 @@ def physics_penalty(x0: torch.Tensor, stats, floors, out_of_bound_weight: float 
                           out_of_bound_weight=out_of_bound_weight, floor_weight=floor_weight,
                           overlap_weight=overlap_weight, out_of_bound_shrink=out_of_bound_shrink, contact=contact,
                           contact_gap_weight=contact_gap_weight, contact_gap=contact_gap,
-                          overlap_measure=overlap_measure, uncharged_pairs=uncharged_pairs, reach_weight=reach_weight,
-                          contact_gap_walkway=contact_gap_walkway)
+                          overlap_measure=overlap_measure, uncharged_pairs=uncharged_pairs, reach_weight=reach_weight)
 
 
 def layout_penalty(trans: torch.Tensor, half: torch.Tensor, yaws: torch.Tensor, labels: torch.Tensor, spec, floors,
@@ -92,7 +90,7 @@ def layout_penalty(trans: torch.Tensor, half: torch.Tensor, yaws: torch.Tensor, 
                    out_of_bound_shrink: float = geo.OUT_OF_BOUND_SHRINK, contact: dict | None = None,
                    contact_gap_weight: float = 0.0, contact_gap: float = DDPOConfig.contact_gap,
                    overlap_measure: str = "volume", uncharged_pairs: list | None = None,
-                   reach_weight: float = 0.0, contact_gap_walkway: bool = False) -> torch.Tensor:
+                   reach_weight: float = 0.0) -> torch.Tensor:
     """:func:`physics_penalty` of rooms given in metres: translations (B, N, 3), half sizes (B, N, 3), yaws (B, N)
     and class labels (B, N) of room type ``spec`` (a label past its classes is an empty slot)."""
     valid = labels != spec.empty_index
@@ -112,12 +110,6 @@ def layout_penalty(trans: torch.Tensor, half: torch.Tensor, yaws: torch.Tensor, 
         spared = contact_pairs(labels, valid, spec, contact)
         if contact_gap_weight:
             drawn = spared & (-sooner < CONTACT_REACH) & pairs
-            if contact_gap_walkway:  # only where drawing the pair's first class out narrows no walkway
-                movers, anchors = (torch.stack([class_mask(labels, spec.classes, [pair[k]]) for pair in contact["pairs"]])
-                                   .any(0) & valid & ground for k in (0, 1))
-                room = room_to_pull(floors, trans, half, yaws, movers, anchors, ground & valid, contact_gap,
-                                    geo.AGENT_RADIUS)
-                drawn = drawn & room & room.transpose(1, 2)
             gaps = ((-sooner - contact_gap).abs() * drawn).sum((1, 2))
         if overlap_measure == "volume" and not contact_gap_weight:
             charge = torch.where(spared, (charge - contact["volume"]).clamp_min(0.0), charge)
@@ -150,8 +142,7 @@ def penalty_weights(cfg: DDPOConfig, contact: dict | None = None, floor_weight: 
     return dict(out_of_bound_weight=cfg.out_of_bound_weight, floor_weight=floor_weight,
                 overlap_weight=cfg.overlap_weight, out_of_bound_shrink=cfg.out_of_bound_shrink, contact=contact,
                 contact_gap_weight=cfg.contact_gap_weight, contact_gap=cfg.contact_gap,
-                contact_gap_walkway=cfg.contact_gap_walkway, overlap_measure=cfg.overlap_measure,
-                uncharged_pairs=cfg.uncharged_pairs)
+                overlap_measure=cfg.overlap_measure, uncharged_pairs=cfg.uncharged_pairs)
 
 
 def task_surrogate(task_reward, x0: torch.Tensor, stats, floors) -> tuple[torch.Tensor, torch.Tensor, float]:
