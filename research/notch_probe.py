@@ -1,7 +1,6 @@
 """Does the prior see a floor's notches? Each non-rectangular floor of a layout file sampled as it is and as its
 bounding rectangle, with the same noise; printed both ways: the objects out of bound of the true floor (R_out's
-definition). Were the floor encoder blind to notches, the two would match (``docs/results/augmentation.md``,
-"Why R_out does not fall").
+definition). Were the floor encoder blind to notches, the two would match (``docs/results/augmentation.md``).
 
     .venv/bin/python research/notch_probe.py FLOORS.json [--checkpoint PRIOR] [--repeats 16]
 """

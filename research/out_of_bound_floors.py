@@ -1,6 +1,6 @@
 """The data's own rooms of the floors on which a prior's samples put an object out of bound (R_out's definition),
 written as a layout file: the hard floors, to weigh up in a fine-tune (tried for Table 4's R_out,
-``docs/results/augmentation.md``, "Why R_out does not fall"). Sample files are matched to the data by room id
+``docs/results/augmentation.md``, "Tried on R_out, did not help"). Sample files are matched to the data by room id
 (``iarcs sample --floors DATA.json`` keeps each floor's id before its ``:``).
 
     .venv/bin/python research/out_of_bound_floors.py DATA.json S0.json S1.json --out HARD.json
