@@ -1,8 +1,10 @@
 """Two metrics of several runs against each other, one labelled point per `iarcs evaluate` report, drawn with Pillow:
-for a trade between them (in dining rooms, Col_obj against R_reach across stage-1 runs).
+for a trade between them (in dining rooms, Col_obj against R_reach across stage-1 runs). A point may pool several
+samplings: ``LABEL=A.json,B.json,...``, each metric weighed by what it is a share of (objects for Col_obj and R_out,
+ground objects for R_reach, rooms otherwise), as ``iarcs compare`` pools them.
 
     .venv/bin/python research/metric_trade.py --x Col_obj --y R_reach --png docs/figures/stage1_dining_trade.png \
-        data=DATA_REPORT.json prior=PRIOR_REPORT.json "depth, 106 epochs=RUN_REPORT.json" ...
+        data=DATA_REPORT.json prior=P_S0_report.json,P_S1_report.json "ranked=R_S0_report.json,R_S1_report.json" ...
 """
 
 from __future__ import annotations
@@ -12,20 +14,37 @@ import json
 from pathlib import Path
 
 
+#: what each metric is a share of, for pooling samplings (the report's count field); rooms for any other
+WEIGHTS = {"Col_obj": "n_objects", "R_out": "n_objects", "R_reach": "n_ground_objects"}
+
+
 def points(files: list[str], x: str, y: str) -> list[tuple[str, float, float]]:
-    """(label, x, y) of each ``LABEL=REPORT.json`` (metrics that are fractions come out in percent)."""
+    """(label, x, y) of each ``LABEL=REPORT.json[,REPORT.json...]`` (metrics that are fractions come out in percent;
+    several reports pooled)."""
     out = []
     for arg in files:
-        label, sep, path = arg.rpartition("=")
+        label, sep, paths = arg.rpartition("=")
         if not sep:
             raise SystemExit(f"expected LABEL=REPORT.json, got {arg!r}")
-        report = json.loads(Path(path).read_text())
-        missing = [m for m in (x, y) if m not in report]
-        if missing:
-            raise SystemExit(f"{path} has no {', '.join(missing)} (an `iarcs evaluate` report has Col_obj, "
-                             "R_reach, ...)")
-        out.append((label, 100 * report[x], 100 * report[y]))
+        reports = []
+        for path in paths.split(","):
+            report = json.loads(Path(path).read_text())
+            missing = [m for m in (x, y) if m not in report]
+            if missing:
+                raise SystemExit(f"{path} has no {', '.join(missing)} (an `iarcs evaluate` report has Col_obj, "
+                                 "R_reach, ...)")
+            reports.append(report)
+        out.append((label, *(100 * pooled(reports, m) for m in (x, y))))
     return out
+
+
+def pooled(reports: list[dict], metric: str) -> float:
+    """``metric`` over several reports, each weighed by its count of what the metric is a share of (one report:
+    its value)."""
+    if len(reports) == 1:
+        return reports[0][metric]
+    weights = [r[WEIGHTS.get(metric, "n_scenes")] for r in reports]
+    return sum(w * r[metric] for w, r in zip(weights, reports)) / sum(weights)
 
 
 def plot(pts: list[tuple[str, float, float]], x: str, y: str, png: str) -> Path:
@@ -78,7 +97,7 @@ def main(argv=None) -> None:
     ap.add_argument("--x", default="Col_obj")
     ap.add_argument("--y", default="R_reach")
     ap.add_argument("--png", required=True)
-    ap.add_argument("files", nargs="+", help="LABEL=REPORT.json")
+    ap.add_argument("files", nargs="+", help="LABEL=REPORT.json, or LABEL=A.json,B.json,... pooled")
     args = ap.parse_args(argv)
     pts = points(args.files, args.x, args.y)
     for label, vx, vy in pts:

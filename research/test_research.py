@@ -407,6 +407,11 @@ def test_metric_trade_reads_reports_in_percent_and_draws_them(tmp_path):
     assert pixels.size == (720, 440) and pixels.getextrema() == (0, 255)  # something drawn on white
     with pytest.raises(SystemExit, match="no R_walkable"):
         mt.points([f"a={tmp_path / 'a.json'}"], "Col_obj", "R_walkable")
+    for name, col, reach, objects, ground in (("c", 0.5, 0.8, 100, 50), ("d", 0.2, 0.6, 300, 150)):
+        (tmp_path / f"{name}.json").write_text(json.dumps({"Col_obj": col, "R_reach": reach, "n_objects": objects,
+                                                           "n_ground_objects": ground}))
+    (point,) = mt.points([f"two samplings={tmp_path / 'c.json'},{tmp_path / 'd.json'}"], "Col_obj", "R_reach")
+    assert point == ("two samplings", pytest.approx(27.5), pytest.approx(65.0))  # weighed by objects, ground objects
 
 
 def test_seat_desk_pulls_push_a_chair_out_of_its_desk_forward_unless_the_pair_is_uncharged():
