@@ -1,11 +1,11 @@
 """Can a rule local to each pair of objects keep the dining walkways? The layout descent of
 ``research/layout_descent.py`` (each overlap its depth, the walls weighed 20, whole footprints kept inside; the
 seat-table contact spared unless ``--charge-contact``; ``--contact-gap-weight`` > 0 draws each chair to 0.12 m from its
-table, ``--gated`` only where no passage narrows) plus ``--weight`` times :func:`agents.physics_gradient.narrow_passages`
-(``ddpo.passage_weight``): each gap between two objects or an object and a wall too narrow for R_reach's agent is
-closed or opened to its width. No walkway grid: only each pair's own gap.
+table) plus a tent on every gap g between two ground objects' bounds (not seat-table, not seat-seat) and between an
+object and a wall: ``--weight`` * min(g - 0.05, 0.6 - g) while 0.05 < g < 0.6, so each gap either closes or opens to
+R_reach's agent (0.6 m wide). No walkway grid: only each pair's own gap.
 
-    .venv/bin/python research/narrow_gap_descent.py PRIOR.json OUT.json --weight 1 [--contact-gap-weight 3 [--gated]] \\
+    .venv/bin/python research/narrow_gap_descent.py PRIOR.json OUT.json --weight 1 [--contact-gap-weight 3] \\
         [--charge-contact]
     iarcs evaluate --scenes OUT.json --reference floors.json --features none
 """
@@ -22,13 +22,43 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from agents.descent_imitation import DESCENT_LR  # noqa: E402
 from agents.physics_gradient import layout_penalty  # noqa: E402
+from iarcs_env import geometry as geo  # noqa: E402
 from iarcs_env.datasets import load_layouts, save_layouts  # noqa: E402
-from iarcs_env.scene import SceneBatch  # noqa: E402
+from iarcs_env.relations import _point_segment_distance, class_mask, floor_edges  # noqa: E402
+from iarcs_env.scene import SceneBatch, footprint_reach  # noqa: E402
 
+CLOSED = 0.05
+"""m: a gap this narrow counts as touching (uncharged)."""
 SEAT_AT_TABLE = {"pairs": [["seat", "table"]], "volume": 0.11}
+EDGE_POINTS = torch.tensor([[1, 1], [1, -1], [-1, 1], [-1, -1], [1, 0], [-1, 0], [0, 1], [0, -1]], dtype=torch.float64)
 
 
-def descend(batch: SceneBatch, weight: float, contact: dict | None, contact_gap_weight: float, gated: bool,
+def tent(gap: torch.Tensor) -> torch.Tensor:
+    """min(g - CLOSED, 2r - g) for CLOSED < g < 2r (r: R_reach's agent radius), else 0."""
+    width = 2 * geo.AGENT_RADIUS
+    inside = (gap > CLOSED) & (gap < width)
+    return torch.where(inside, torch.minimum(gap - CLOSED, width - gap), torch.zeros_like(gap))
+
+
+def narrow_gaps(trans, half, yaws, labels, spec, floors) -> torch.Tensor:
+    """(B,) the tent summed over the gaps between ground objects' bounds (seats with tables or seats left out) and
+    between each ground object's bounds (corners and edge midpoints) and the walls."""
+    ground = torch.tensor(spec.ground_mask())[labels] & (labels != spec.empty_index)
+    seat, table = (class_mask(labels, spec.classes, [name]) for name in ("seat", "table"))
+    skip = (seat[:, :, None] & (seat | table)[:, None]) | (table[:, :, None] & seat[:, None])
+    separation = geo.bounds_separations(trans, half, yaws)[..., 0:3:2]  # overlap (+) or minus the gap, per axis
+    apart = (separation < 0).any(-1)
+    pairs = (ground[:, :, None] & ground[:, None]).triu(1) & apart & ~skip
+    between = (tent((-separation).clamp_min(0).norm(dim=-1)) * pairs).sum((1, 2))
+    reach = footprint_reach(half[..., 0:3:2], torch.cos(yaws), torch.sin(yaws))
+    points = trans[..., 0:3:2][:, :, None] + EDGE_POINTS.to(trans) * reach[:, :, None]  # (B, N, 8, 2)
+    edges = floor_edges(floors).to(trans)
+    to_walls = _point_segment_distance(points[:, :, :, None], edges[:, None, None, :, :2],
+                                       edges[:, None, None, :, 2:]).amin(2)  # (B, N, E): each wall's nearest point
+    return between + (tent(to_walls) * ground[..., None]).sum((1, 2))
+
+
+def descend(batch: SceneBatch, weight: float, contact: dict | None, contact_gap_weight: float,
             steps: int = 300) -> torch.Tensor:
     """Translations of ``batch`` moved on the floor by ``steps`` steps of Adam down the penalty (module doc)."""
     trans0, half, yaws = batch.translations.double(), batch.half_sizes.double(), batch.yaws.double()
@@ -44,8 +74,8 @@ def descend(batch: SceneBatch, weight: float, contact: dict | None, contact_gap_
         trans = moved(delta)
         loss = layout_penalty(trans, half, yaws, batch.labels, batch.spec, batch.floors, out_of_bound_weight=20.0,
                               out_of_bound_shrink=0.0, contact=contact, overlap_measure="depth",
-                              contact_gap_weight=contact_gap_weight, contact_gap=0.12,
-                              contact_gap_walkway=gated, passage_weight=weight)
+                              contact_gap_weight=contact_gap_weight, contact_gap=0.12)
+        loss = loss + weight * narrow_gaps(trans, half, yaws, batch.labels, batch.spec, batch.floors)
         optimizer.zero_grad()
         loss.sum().backward()
         optimizer.step()
@@ -59,8 +89,6 @@ def main() -> None:
     parser.add_argument("--weight", type=float, required=True, help="the tent's weight")
     parser.add_argument("--contact-gap-weight", type=float, default=0.0)
     parser.add_argument("--charge-contact", action="store_true", help="charge the seat-table overlap as any other")
-    parser.add_argument("--gated", action="store_true",
-                        help="draw a chair out only where no passage narrows (ddpo.contact_gap_walkway)")
     args = parser.parse_args()
     torch.set_num_threads(1)
     layouts = load_layouts(args.scenes, "diningroom")
@@ -68,7 +96,7 @@ def main() -> None:
     for start in range(0, len(layouts), 50):
         batch = SceneBatch.from_layouts(layouts[start:start + 50])
         batch.translations = descend(batch, args.weight, None if args.charge_contact else SEAT_AT_TABLE,
-                                     args.contact_gap_weight, args.gated)
+                                     args.contact_gap_weight)
         out += batch.to_layouts()
         print(f"{len(out)} of {len(layouts)} rooms", file=sys.stderr)
     save_layouts(out, args.out)
