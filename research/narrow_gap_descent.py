@@ -33,33 +33,44 @@ SEAT_AT_TABLE = {"pairs": [["seat", "table"]], "volume": 0.11}
 EDGE_POINTS = torch.tensor([[1, 1], [1, -1], [-1, 1], [-1, -1], [1, 0], [-1, 0], [0, 1], [0, -1]], dtype=torch.float64)
 
 
-def tent(gap: torch.Tensor) -> torch.Tensor:
-    """min(g - CLOSED, 2r - g) for CLOSED < g < 2r (r: R_reach's agent radius), else 0."""
+def tent(gap: torch.Tensor, apex: torch.Tensor | float = 2 * geo.AGENT_RADIUS) -> torch.Tensor:
+    """min(g - CLOSED, apex - g) for CLOSED < g < apex (by default 2r, r: R_reach's agent radius), else 0."""
+    inside = (gap > CLOSED) & (gap < apex)
+    return torch.where(inside, torch.minimum(gap - CLOSED, apex - gap), torch.zeros_like(gap))
+
+
+def apexes(gaps: tuple[torch.Tensor, torch.Tensor]) -> tuple[torch.Tensor, torch.Tensor]:
+    """``--relative``: each tent's apex from the room's gaps before the descent (``narrow_gaps(..., gaps_only=True)``):
+    a gap that was already narrow (CLOSED < g0 < 2r) keeps g0, so only narrowing it further is charged; every other
+    gap, 2r."""
     width = 2 * geo.AGENT_RADIUS
-    inside = (gap > CLOSED) & (gap < width)
-    return torch.where(inside, torch.minimum(gap - CLOSED, width - gap), torch.zeros_like(gap))
+    return tuple(torch.where((g > CLOSED) & (g < width), g, torch.full_like(g, width)) for g in gaps)
 
 
-def narrow_gaps(trans, half, yaws, labels, spec, floors) -> torch.Tensor:
+def narrow_gaps(trans, half, yaws, labels, spec, floors, apex=(2 * geo.AGENT_RADIUS,) * 2, gaps_only=False):
     """(B,) the tent summed over the gaps between ground objects' bounds (seats with tables or seats left out) and
-    between each ground object's bounds (corners and edge midpoints) and the walls."""
+    between each ground object's bounds (corners and edge midpoints) and the walls; ``apex``: the tents' apexes, of
+    the pairs and of the walls (:func:`apexes`); ``gaps_only``: the two tensors of gaps instead."""
     ground = torch.tensor(spec.ground_mask())[labels] & (labels != spec.empty_index)
     seat, table = (class_mask(labels, spec.classes, [name]) for name in ("seat", "table"))
     skip = (seat[:, :, None] & (seat | table)[:, None]) | (table[:, :, None] & seat[:, None])
     separation = geo.bounds_separations(trans, half, yaws)[..., 0:3:2]  # overlap (+) or minus the gap, per axis
     apart = (separation < 0).any(-1)
     pairs = (ground[:, :, None] & ground[:, None]).triu(1) & apart & ~skip
-    between = (tent((-separation).clamp_min(0).norm(dim=-1)) * pairs).sum((1, 2))
+    gap = (-separation).clamp_min(0).norm(dim=-1).masked_fill(~pairs, 0.0)
     reach = footprint_reach(half[..., 0:3:2], torch.cos(yaws), torch.sin(yaws))
     points = trans[..., 0:3:2][:, :, None] + EDGE_POINTS.to(trans) * reach[:, :, None]  # (B, N, 8, 2)
     edges = floor_edges(floors).to(trans)
     to_walls = _point_segment_distance(points[:, :, :, None], edges[:, None, None, :, :2],
                                        edges[:, None, None, :, 2:]).amin(2)  # (B, N, E): each wall's nearest point
-    return between + (tent(to_walls) * ground[..., None]).sum((1, 2))
+    to_walls = to_walls.masked_fill(~ground[..., None], 0.0)
+    if gaps_only:
+        return gap.detach(), to_walls.detach()
+    return tent(gap, apex[0]).sum((1, 2)) + tent(to_walls, apex[1]).sum((1, 2))
 
 
 def descend(batch: SceneBatch, weight: float, contact: dict | None, contact_gap_weight: float,
-            steps: int = 300) -> torch.Tensor:
+            relative: bool = False, steps: int = 300) -> torch.Tensor:
     """Translations of ``batch`` moved on the floor by ``steps`` steps of Adam down the penalty (module doc)."""
     trans0, half, yaws = batch.translations.double(), batch.half_sizes.double(), batch.yaws.double()
     valid = batch.labels != batch.spec.empty_index
@@ -70,12 +81,14 @@ def descend(batch: SceneBatch, weight: float, contact: dict | None, contact_gap_
         move = d * valid[..., None]
         return trans0 + torch.stack([move[..., 0], torch.zeros_like(move[..., 0]), move[..., 1]], -1)
 
+    args = (half, yaws, batch.labels, batch.spec, batch.floors)
+    apex = apexes(narrow_gaps(trans0, *args, gaps_only=True)) if relative else (2 * geo.AGENT_RADIUS,) * 2
     for _ in range(steps):
         trans = moved(delta)
         loss = layout_penalty(trans, half, yaws, batch.labels, batch.spec, batch.floors, out_of_bound_weight=20.0,
                               out_of_bound_shrink=0.0, contact=contact, overlap_measure="depth",
                               contact_gap_weight=contact_gap_weight, contact_gap=0.12)
-        loss = loss + weight * narrow_gaps(trans, half, yaws, batch.labels, batch.spec, batch.floors)
+        loss = loss + weight * narrow_gaps(trans, *args, apex=apex)
         optimizer.zero_grad()
         loss.sum().backward()
         optimizer.step()
@@ -89,6 +102,8 @@ def main() -> None:
     parser.add_argument("--weight", type=float, required=True, help="the tent's weight")
     parser.add_argument("--contact-gap-weight", type=float, default=0.0)
     parser.add_argument("--charge-contact", action="store_true", help="charge the seat-table overlap as any other")
+    parser.add_argument("--relative", action="store_true", help="a gap narrow in the room given is charged only "
+                        "where it narrows further (the tent's apex: that gap)")
     args = parser.parse_args()
     torch.set_num_threads(1)
     layouts = load_layouts(args.scenes, "diningroom")
@@ -96,7 +111,7 @@ def main() -> None:
     for start in range(0, len(layouts), 50):
         batch = SceneBatch.from_layouts(layouts[start:start + 50])
         batch.translations = descend(batch, args.weight, None if args.charge_contact else SEAT_AT_TABLE,
-                                     args.contact_gap_weight)
+                                     args.contact_gap_weight, args.relative)
         out += batch.to_layouts()
         print(f"{len(out)} of {len(layouts)} rooms", file=sys.stderr)
     save_layouts(out, args.out)
