@@ -228,6 +228,33 @@ def test_class_counts_names_the_classes_of_the_objects_out_of_the_room(tmp_path,
     assert "| 6 | 1 | 0.500 |" in out
 
 
+def test_valid_rooms_drops_only_rooms_with_the_named_classes_out_of_bound():
+    """``--out-of-bound double_bed``: a room with a nightstand through the notch is kept, one with its bed there is
+    not; ``--out-of-bound`` alone drops both; with neither, a room with an object off the floor goes too."""
+    script = load("valid_rooms")
+    bed_out = make_layout([box("double_bed", 3.0, 2.0, 0.5, 0.5)], floor=L_SHAPE)
+    stand_out = make_layout([box("double_bed", 1.0, 1.0, 0.5, 0.5), box("nightstand", 3.0, 2.0, 0.3, 0.3)],
+                            floor=L_SHAPE)
+    lifted = make_layout([box("double_bed", 1.0, 1.0, 0.5, 0.5, y0=0.3)])
+    rooms = [bed_out, stand_out, lifted]
+    assert script.valid(rooms, "bedroom", False, ["double_bed"]).tolist() == [False, True, True]
+    assert script.valid(rooms, "bedroom", False, []).tolist() == [False, False, True]
+    assert script.valid(rooms, "bedroom", False).tolist() == [False, False, False]
+
+
+def test_narrow_gap_descent_relative_tents_charge_only_a_narrow_gap_narrowing():
+    """``--relative``: a gap the room had at 0.3 m is its own tent's apex (no charge there, a charge once it narrows
+    to 0.2 m), a gap it had closed or wide keeps the 0.6 m apex."""
+    script = load("narrow_gap_descent")
+    gaps = torch.tensor([0.3, 0.0, 1.0])
+    apex = script.apexes((gaps, gaps))[0]
+    assert apex.tolist() == pytest.approx([0.3, 0.6, 0.6])
+    # the narrow gap kept, the closed one opened to 0.2 m charged, the wide one narrowed to 0.4 m charged
+    assert script.tent(torch.tensor([0.3, 0.2, 0.4]), apex).tolist() == pytest.approx([0.0, 0.15, 0.2])
+    assert script.tent(torch.tensor([0.2]), torch.tensor([0.3])).item() == pytest.approx(0.1)
+    assert script.tent(torch.tensor([0.3])).item() == pytest.approx(0.25)  # the fixed tent: min(0.25, 0.3)
+
+
 def test_out_of_bound_remedies_move_shrink_or_delete_each_object_and_score_the_edits():
     """research/out_of_bound_remedies.py: the wardrobe centred on the notch's edge of an L-shaped room comes
     inside by a 0.46 m shift but by no shrink down to 30%; the nightstand 0.15 m through a wall by either."""

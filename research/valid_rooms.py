@@ -3,7 +3,8 @@ layout file of their own: no object out of bound, none off the floor, and (with 
 whose objects the room holds also holds (``iarcs_env/relation_fidelity.py``: a bed with two nightstands has them
 at its head, a TV stand and a bed face each other, ...). Used to try augmentation with only those of the
 generated rooms (Table 4, ``docs/results/augmentation.md``); with ``--out-of-bound CLASS ...`` only an object of
-those classes out of bound drops a room (the prior's training rooms with a bed out of bound left out; none named: any class).
+those classes out of bound drops a room (the prior's training rooms with a bed out of bound left out; no class named:
+any object out of bound).
 
     .venv/bin/python research/valid_rooms.py AUG/scenes.json --room bedroom --relations --limit 4000 --out VALID.json
     .venv/bin/python research/valid_rooms.py procedural --num-scenes 20000 --room bedroom \
