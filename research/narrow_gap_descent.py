@@ -3,10 +3,11 @@
 seat-table contact spared unless ``--charge-contact``; ``--contact-gap-weight`` > 0 draws each chair to 0.12 m from its
 table) plus a tent on every gap g between two ground objects' bounds (not seat-table, not seat-seat) and between an
 object and a wall: ``--weight`` * min(g - 0.05, 0.6 - g) while 0.05 < g < 0.6, so each gap either closes or opens to
-R_reach's agent (0.6 m wide). No walkway grid: only each pair's own gap.
+R_reach's agent (0.6 m wide); with ``--relative``, a gap the room had narrow (0.05 < g0 < 0.6) only kept from
+narrowing: its tent's apex is g0. No walkway grid: only each pair's own gap.
 
     .venv/bin/python research/narrow_gap_descent.py PRIOR.json OUT.json --weight 1 [--contact-gap-weight 3] \\
-        [--charge-contact]
+        [--charge-contact] [--relative]
     iarcs evaluate --scenes OUT.json --reference floors.json --features none
 """
 
