@@ -63,7 +63,8 @@ def main() -> None:
     layouts = load_layouts(args.scenes, args.room, num_scenes=args.num_scenes, seed=0)
     kept = [lay for lay, ok in zip(layouts, valid(layouts, args.room, args.relations, args.out_of_bound))
             if ok][:args.limit]
-    save_layouts(kept, args.out, source=f"{args.scenes}, valid rooms" + (", relations kept" if args.relations else ""))
+    kind = "valid rooms" if args.out_of_bound is None else f"no {', '.join(args.out_of_bound) or 'object'} out of bound"
+    save_layouts(kept, args.out, source=f"{args.scenes}, {kind}" + (", relations kept" if args.relations else ""))
     print(f"{len(kept)} of {len(layouts)} rooms kept: {args.out}")
 
 
