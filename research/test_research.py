@@ -529,21 +529,44 @@ def test_descent_fit_takes_the_batch_towards_its_moves_and_samples_other_floors(
 
 
 def test_best_of_floor_metrics_picks_each_floors_cleanest_sampling(tmp_path, capsys):
-    """Two samplings of two floors of 4 ground objects each: floor 0 is clean in the second sampling only, floor 1 in
-    the first only; each floor's best is the clean one."""
+    """Two samplings of two floors: floor 0 is clean in the second sampling only, floor 1 in the first only; each
+    floor's best is the clean one. Floor 1's second room holds 2 ground objects, not 4: the fewest-objects pick
+    takes it (and floor 0's first, the first of a tie), collisions and all."""
     def report(path, scenes):
-        path.write_text(json.dumps({"per_scene": [{"ground_objects": 4, "colliding": c, "unreachable_objects": u}
-                                                   for c, u in scenes]}))
+        path.write_text(json.dumps({"per_scene": [{"ground_objects": g, "colliding": c, "unreachable_objects": u}
+                                                   for g, c, u in scenes]}))
         return str(path)
 
-    a = report(tmp_path / "a.json", [([0, 1], [2]), ([], [])])
-    b = report(tmp_path / "b.json", [([], []), ([0, 1, 2], [3])])
+    a = report(tmp_path / "a.json", [(4, [0, 1], [2]), (4, [], [])])
+    b = report(tmp_path / "b.json", [(4, [], []), (2, [0, 1], [1])])
     load("best_of_floor_metrics").main([a, b])
     lines = capsys.readouterr().out.splitlines()
-    assert lines == ["2 floors, 2 samplings each", "all samplings: Col_obj 31.2%, R_reach 87.5%",
-                     "each floor's best: Col_obj 0.0%, R_reach 100.0%"]
+    assert lines == ["2 floors, 2 samplings each",
+                     "all samplings: Col_obj 28.6%, R_reach 85.7%, 3.50 ground objects per room",
+                     "each floor's best: Col_obj 0.0%, R_reach 100.0%, 4.00 ground objects per room",
+                     "each floor's fewest ground objects: Col_obj 66.7%, R_reach 66.7%, 3.00 ground objects per room"]
     with pytest.raises(SystemExit, match="different numbers of scenes"):
-        load("best_of_floor_metrics").main([a, report(tmp_path / "c.json", [([], [])])])
+        load("best_of_floor_metrics").main([a, report(tmp_path / "c.json", [(4, [], [])])])
+
+
+def test_same_objects_samplings_give_every_sampling_of_a_floor_the_same_objects(tmp_path):
+    """A tiny prior (its zero-initialised layers perturbed) on 3 floors, two samplings: each floor's rooms hold the
+    same objects in both, arranged differently, and the floors' rooms differ from each other."""
+    from conftest import perturb_zero_init
+    from iarcs_env.datasets import load_layouts, save_layouts
+    from iarcs_env.datasets.procedural import generate_layouts
+    from iarcs_env.env import default_stats
+
+    torch.manual_seed(0)
+    perturb_zero_init(ScenePrior.create("bedroom", default_stats("bedroom"), "tiny"), 0).save(tmp_path / "prior.pt")
+    save_layouts(generate_layouts("bedroom", 3, seed=5), tmp_path / "floors.json")
+    load("same_objects_samplings").main(["--room", "bedroom", "--floors", str(tmp_path / "floors.json"), "--prior",
+                                         str(tmp_path / "prior.pt"), "--out", str(tmp_path / "G"), "--seeds", "0",
+                                         "1", "--steps", "4"])
+    a, b = (load_layouts(tmp_path / f"G_{s}.json", "bedroom") for s in (0, 1))
+    assert [sorted(x.labels) for x in a] == [sorted(y.labels) for y in b]
+    assert len({tuple(sorted(x.labels)) for x in a}) > 1
+    assert all(len(x.labels) and not np.allclose(x.translations, y.translations) for x, y in zip(a, b))
 
 
 def test_task_by_floor_and_same_floors_tell_the_floors_choice_from_the_samplings(tmp_path, capsys):
