@@ -94,6 +94,17 @@ class DDPOConfig:
     contact_gap: float = 0.05
     """``physics-gradient`` only: the gap (m) between their bounds that ``contact_gap_weight`` draws a contact pair
     to; wider than the sampler's last steps move an object, or the pair ends up touching (Col_obj counts it)."""
+    contact_gap_walkway: bool = False
+    """``physics-gradient`` only: ``contact_gap_weight`` draws a pair out only where standing the drawn object (the
+    first class of its ``contact`` pair: the seat) at ``contact_gap`` narrows no passage below R_reach's agent (0.6
+    m wide); elsewhere the pair is left as it is. A chair pulled out towards a wall or a cabinet closes the walkway
+    behind it (``iarcs_env.clearance.room_to_pull``)."""
+    passage_weight: float = 0.0
+    """``physics-gradient`` only: charges each gap g between two ground objects' bounds (not a seat with a table or
+    another seat) and between an object and a wall this weight times min(g - 0.05, 0.6 - g) while 0.05 < g < 0.6 m:
+    a gap too narrow for R_reach's agent is closed or opened to its width, whichever is nearer
+    (:func:`agents.physics_gradient.narrow_passages`). A rule on each pair's own gap, where ``reach_weight`` looks at
+    the whole room's paths."""
     uncharged_pairs: list | None = None
     """``physics-gradient`` only: class pairs (names or groups, e.g. ``[[seat, desk]]``) whose overlap is not
     charged: a chair half under its desk, the data's own contact (charged, chairs left their desks more often:

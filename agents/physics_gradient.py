@@ -46,9 +46,10 @@ import torch
 from tensordict import TensorDict
 
 from iarcs_env import geometry as geo
-from iarcs_env.clearance import reach_clearance
+from iarcs_env.clearance import reach_clearance, room_to_pull
 from iarcs_env.relation_fidelity import CHAIR_GAP
-from iarcs_env.scene import SceneBatch, decode_geometry, floor_half_extents
+from iarcs_env.relations import _point_segment_distance as point_segment_distance, class_mask, floor_edges
+from iarcs_env.scene import SceneBatch, decode_geometry, floor_half_extents, footprint_reach
 
 from rewards.universal import class_pairs, contact_pairs
 
@@ -67,7 +68,8 @@ def physics_penalty(x0: torch.Tensor, stats, floors, out_of_bound_weight: float 
                     out_of_bound_shrink: float = geo.OUT_OF_BOUND_SHRINK, contact: dict | None = None,
                     contact_gap_weight: float = 0.0, contact_gap: float = DDPOConfig.contact_gap,
                     overlap_measure: str = "volume", uncharged_pairs: list | None = None,
-                    reach_weight: float = 0.0) -> torch.Tensor:
+                    reach_weight: float = 0.0, contact_gap_walkway: bool = False,
+                    passage_weight: float = 0.0) -> torch.Tensor:
     """(B,) ``overlap_weight`` times the overlap volume (m^3; or depth, ``overlap_measure``) of every pair of ground
     objects' axis-aligned bounds plus ``out_of_bound_weight`` times the out-of-bound area (m^2, footprints shrunk by
     ``out_of_bound_shrink`` m, R_out's 0.05 m by default) of every object plus ``floor_weight`` times the ground
@@ -82,7 +84,8 @@ def physics_penalty(x0: torch.Tensor, stats, floors, out_of_bound_weight: float 
                           out_of_bound_weight=out_of_bound_weight, floor_weight=floor_weight,
                           overlap_weight=overlap_weight, out_of_bound_shrink=out_of_bound_shrink, contact=contact,
                           contact_gap_weight=contact_gap_weight, contact_gap=contact_gap,
-                          overlap_measure=overlap_measure, uncharged_pairs=uncharged_pairs, reach_weight=reach_weight)
+                          overlap_measure=overlap_measure, uncharged_pairs=uncharged_pairs, reach_weight=reach_weight,
+                          contact_gap_walkway=contact_gap_walkway, passage_weight=passage_weight)
 
 
 def layout_penalty(trans: torch.Tensor, half: torch.Tensor, yaws: torch.Tensor, labels: torch.Tensor, spec, floors,
@@ -90,7 +93,8 @@ def layout_penalty(trans: torch.Tensor, half: torch.Tensor, yaws: torch.Tensor, 
                    out_of_bound_shrink: float = geo.OUT_OF_BOUND_SHRINK, contact: dict | None = None,
                    contact_gap_weight: float = 0.0, contact_gap: float = DDPOConfig.contact_gap,
                    overlap_measure: str = "volume", uncharged_pairs: list | None = None,
-                   reach_weight: float = 0.0) -> torch.Tensor:
+                   reach_weight: float = 0.0, contact_gap_walkway: bool = False,
+                   passage_weight: float = 0.0) -> torch.Tensor:
     """:func:`physics_penalty` of rooms given in metres: translations (B, N, 3), half sizes (B, N, 3), yaws (B, N)
     and class labels (B, N) of room type ``spec`` (a label past its classes is an empty slot)."""
     valid = labels != spec.empty_index
@@ -110,6 +114,12 @@ def layout_penalty(trans: torch.Tensor, half: torch.Tensor, yaws: torch.Tensor, 
         spared = contact_pairs(labels, valid, spec, contact)
         if contact_gap_weight:
             drawn = spared & (-sooner < CONTACT_REACH) & pairs
+            if contact_gap_walkway:  # only where drawing the pair's first class out narrows no walkway
+                movers, anchors = (torch.stack([class_mask(labels, spec.classes, [pair[k]]) for pair in contact["pairs"]])
+                                   .any(0) & valid & ground for k in (0, 1))
+                room = room_to_pull(floors, trans, half, yaws, movers, anchors, ground & valid, contact_gap,
+                                    geo.AGENT_RADIUS)
+                drawn = drawn & room & room.transpose(1, 2)
             gaps = ((-sooner - contact_gap).abs() * drawn).sum((1, 2))
         if overlap_measure == "volume" and not contact_gap_weight:
             charge = torch.where(spared, (charge - contact["volume"]).clamp_min(0.0), charge)
@@ -122,10 +132,42 @@ def layout_penalty(trans: torch.Tensor, half: torch.Tensor, yaws: torch.Tensor, 
     off_floor = geo.floor_gaps(trans, half, ground).sum(1)
     penalty = (overlap_weight * charge + contact_gap_weight * gaps + out_of_bound_weight * outside.to(charge)
                + floor_weight * off_floor)
+    if passage_weight:
+        penalty = penalty + passage_weight * narrow_passages(trans, half, yaws, labels, spec, floors, ground & valid)
     if reach_weight:
         clear = reach_clearance(floors, trans, half, yaws, ground & valid, geo.AGENT_RADIUS)
         penalty = penalty + reach_weight * (geo.AGENT_RADIUS - clear).clamp_min(0).sum(1).to(penalty)
     return penalty
+
+
+PASSAGE_CLOSED = 0.05
+"""m: a gap this narrow counts as closed (touching): ``passage_weight`` does not charge it."""
+_EDGE_POINTS = ((1, 1), (1, -1), (-1, 1), (-1, -1), (1, 0), (-1, 0), (0, 1), (0, -1))
+
+
+def passage_tent(gap: torch.Tensor) -> torch.Tensor:
+    """min(g - PASSAGE_CLOSED, 2r - g) while PASSAGE_CLOSED < g < 2r (r: R_reach's agent radius), else 0: the way
+    out of a gap too narrow to walk through, closed or opened to an agent's width, whichever is nearer."""
+    width = 2 * geo.AGENT_RADIUS
+    inside = (gap > PASSAGE_CLOSED) & (gap < width)
+    return torch.where(inside, torch.minimum(gap - PASSAGE_CLOSED, width - gap), torch.zeros_like(gap))
+
+
+def narrow_passages(trans, half, yaws, labels, spec, floors, ground) -> torch.Tensor:
+    """(B,) :func:`passage_tent` summed over the gaps between ground objects' bounds (a seat and a table or two seats
+    left out: chairs stand close at their table) and between each ground object's bounds (corners and edge midpoints)
+    and each wall."""
+    seat, table = (class_mask(labels, spec.classes, [name]) for name in ("seat", "table"))
+    skip = (seat[:, :, None] & (seat | table)[:, None]) | (table[:, :, None] & seat[:, None])
+    separation = geo.bounds_separations(trans, half, yaws)[..., 0:3:2]  # overlap (+) or minus the gap, per axis
+    pairs = (ground[:, :, None] & ground[:, None]).triu(1) & (separation < 0).any(-1) & ~skip
+    between = (passage_tent((-separation).clamp_min(0).norm(dim=-1)) * pairs).sum((1, 2))
+    reach = footprint_reach(half[..., 0:3:2], torch.cos(yaws), torch.sin(yaws))
+    points = trans[..., 0:3:2][:, :, None] + torch.tensor(_EDGE_POINTS).to(trans) * reach[:, :, None]  # (B, N, 8, 2)
+    edges = floor_edges(floors).to(trans)
+    to_walls = point_segment_distance(points[:, :, :, None], edges[:, None, None, :, :2],
+                                      edges[:, None, None, :, 2:]).amin(2)  # (B, N, E): each wall's nearest point
+    return between + (passage_tent(to_walls) * ground[..., None]).sum((1, 2))
 
 
 def config_penalty(x0: torch.Tensor, stats, floors, cfg: DDPOConfig, contact: dict | None = None,
@@ -142,7 +184,9 @@ def penalty_weights(cfg: DDPOConfig, contact: dict | None = None, floor_weight: 
     return dict(out_of_bound_weight=cfg.out_of_bound_weight, floor_weight=floor_weight,
                 overlap_weight=cfg.overlap_weight, out_of_bound_shrink=cfg.out_of_bound_shrink, contact=contact,
                 contact_gap_weight=cfg.contact_gap_weight, contact_gap=cfg.contact_gap,
-                overlap_measure=cfg.overlap_measure, uncharged_pairs=cfg.uncharged_pairs)
+                contact_gap_walkway=cfg.contact_gap_walkway, passage_weight=cfg.passage_weight,
+                overlap_measure=cfg.overlap_measure,
+                uncharged_pairs=cfg.uncharged_pairs)
 
 
 def task_surrogate(task_reward, x0: torch.Tensor, stats, floors) -> tuple[torch.Tensor, torch.Tensor, float]:

@@ -65,6 +65,48 @@ def point_clearance(points, edges, translations, half_sizes, yaws, obstacles) ->
     return every.amin(-1).detach() + smooth - smooth.detach()
 
 
+def room_to_pull(floors: Sequence[FloorPlan], translations, half_sizes, yaws, movers: torch.Tensor,
+                 anchors: torch.Tensor, ground: torch.Tensor, gap: float, radius: float) -> torch.Tensor:
+    """``(B, N, N)`` bool, no gradient: for a ``movers`` slot i and an ``anchors`` slot j (a chair and its table),
+    whether drawing i out to ``gap`` (m) from j narrows no passage below an agent's width (2 ``radius``): i's bounds
+    placed ``gap`` beyond j's along the axis that parts the pair soonest, on i's side of j, are, from each other
+    ground object's bounds and from each wall (to its corners and edge midpoints), at least 2 ``radius`` or no nearer
+    than i stands now. Other pairs: True. A chair pulled out towards a wall or a cabinet closes the walkway behind it and
+    can split the room in two (issue 39's dining rooms)."""
+    from .scene import footprint_reach
+
+    with torch.no_grad():
+        t = translations.detach()
+        c = t[..., 0:3:2]  # (B, N, 2) x, z
+        ext = footprint_reach(half_sizes.detach()[..., 0:3:2], torch.cos(yaws.detach()), torch.sin(yaws.detach()))
+        B, N = movers.shape
+        d = c[:, :, None] - c[:, None]  # (B, N, N, 2): i's centre from j's
+        axis = (ext[:, :, None] + ext[:, None] - d.abs()).argmin(-1, keepdim=True)  # the axis parting them soonest
+        side = torch.where(d.gather(-1, axis) >= 0, 1.0, -1.0).to(t)
+        ext_i, ext_j = ext[:, :, None].expand_as(d), ext[:, None].expand_as(d)
+        target = c[:, None].expand_as(d).gather(-1, axis) + side * (ext_j.gather(-1, axis) + gap + ext_i.gather(-1, axis))
+        moved = c[:, :, None].expand_as(d).scatter(-1, axis, target)  # (B, N, N, 2): i's centre once drawn from j
+
+        others = ground[:, None, None, :] & ~torch.eye(N, dtype=torch.bool, device=t.device)[None, :, None, :] \
+            & ~torch.eye(N, dtype=torch.bool, device=t.device)[None, None, :, :]  # (B, i, j, k): k neither i nor j
+        corners = torch.tensor([[1, 1], [1, -1], [-1, 1], [-1, -1], [1, 0], [-1, 0], [0, 1], [0, -1]]).to(t)
+
+        edges = floor_edges(floors).to(t)
+
+        def distances(centre: torch.Tensor) -> torch.Tensor:  # (B, N, N, N + E): i's bounds at ``centre`` to the rest
+            apart = (centre[:, :, :, None] - c[:, None, None]).abs() - ext[:, :, None, None] - ext[:, None, None]
+            to_objects = apart.clamp_min(0).norm(dim=-1).masked_fill(~others, float("inf"))
+            points = centre[:, :, :, None] + corners * ext[:, :, None, None]  # (B, N, N, 8, 2)
+            to_walls = _point_segment_distance(points[..., None, :], edges[:, None, None, None, :, :2],
+                                               edges[:, None, None, None, :, 2:]).amin(-2)  # (B, N, N, E)
+            return torch.cat([to_objects, to_walls], -1)
+
+        before, after = distances(c[:, :, None].expand_as(d)), distances(moved)
+        keeps = ((after >= 2 * radius) | (after >= before - 1e-3)).all(-1)  # no object's or wall's passage narrowed
+        pair = movers[:, :, None] & anchors[:, None]
+        return torch.where(pair, keeps, torch.ones_like(keeps))
+
+
 class ClearanceGrid:
     """The clearance of every grid cell of a batch (no gradient), padded to one ``(B, H, W)`` grid: ``centres``
     ``(B, H, W, 2)``, ``inside`` (the scene's own cells), ``value`` (-inf on padding), ``to_objects``

@@ -4,7 +4,7 @@ have no way down that keeps their relations and walkways (issue 39).
 
     .venv/bin/python research/layout_descent.py --room livingroom PRIOR.json --out DESCENDED.json \\
         [--steps 300] [--reach-weight 5] [--out-of-bound-weight 5] [--out-of-bound-shrink 0] [--refresh 20] \\
-        [--contact-gap-weight 3 --contact-gap 0.12]
+        [--contact-gap-weight 3 --contact-gap 0.12 [--contact-gap-walkway]]
     iarcs evaluate --scenes DESCENDED.json --reference floors.json --features none --out report.json
 
 Each room's objects move on the floor (x and z; heights, sizes, yaws and classes kept) by
@@ -42,6 +42,8 @@ def main() -> None:
     parser.add_argument("--contact-gap-weight", type=float, default=0.0,
                         help="> 0: a contact pair within 0.6 m drawn to --contact-gap (ddpo.contact_gap_weight)")
     parser.add_argument("--contact-gap", type=float, default=0.05)
+    parser.add_argument("--contact-gap-walkway", action="store_true",
+                        help="draw a pair out only where a walkway stays behind it (ddpo.contact_gap_walkway)")
     parser.add_argument("--refresh", type=int, default=20, help="steps between the walkway term's grid searches")
     args = parser.parse_args()
     import torch
@@ -55,7 +57,7 @@ def main() -> None:
     layouts = load_layouts(args.scenes, args.room)
     weights = dict(out_of_bound_weight=args.out_of_bound_weight, out_of_bound_shrink=args.out_of_bound_shrink,
                    contact=CONTACT[args.room], overlap_measure="depth", contact_gap_weight=args.contact_gap_weight,
-                   contact_gap=args.contact_gap)
+                   contact_gap=args.contact_gap, contact_gap_walkway=args.contact_gap_walkway)
     out, before, after = [], [], []
     for start in range(0, len(layouts), 50):
         batch = SceneBatch.from_layouts(layouts[start:start + 50])

@@ -83,3 +83,33 @@ def test_kept_bottleneck_points_give_the_reach_clearance_and_follow_the_furnitur
     moved = t.clone()
     moved[0, 0, 0] -= 0.05
     assert clearance_of_points(batch.floors, points, moved, h, y, ground, 0.3)[0, 1].item() == pytest.approx(0.275)
+
+
+def test_a_chair_is_drawn_out_only_where_no_passage_narrows_below_the_agent():
+    """A 4 m square dining room, a table at its middle (x 1.4..2.6, z 1.6..2.4) with three chairs 0.1 m under it, drawn
+    out to a 0.12 m gap: the south chair keeps 1.08 m to the wall behind it (allowed); the north one goes from 0.65 m
+    to 0.43 m of a cabinet (refused for R_reach's 0.6 m agent, allowed for a 0.4 m one); the east one is already
+    0.5 m from its cabinet and would be 0.28 m (refused for both)."""
+    from iarcs_env.clearance import room_to_pull
+    from iarcs_env.relations import class_mask
+
+    layout = make_layout([box("dining_table", 2.0, 2.0, 0.6, 0.4),
+                          box("dining_chair", 2.0, 1.5, 0.2, 0.2),    # south: z 1.3..1.7
+                          box("dining_chair", 2.0, 2.5, 0.2, 0.2),    # north: z 2.3..2.7
+                          box("dining_chair", 2.7, 2.0, 0.2, 0.2),    # east: x 2.5..2.9
+                          box("cabinet", 3.7, 2.0, 0.3, 0.5),         # x 3.4..4.0
+                          box("cabinet", 2.0, 3.55, 0.5, 0.2)],       # z 3.35..3.75
+                         floor=SQUARE, room="diningroom")
+    batch = SceneBatch.from_layouts([layout])
+    spec = batch.spec
+    ground = batch.ground_mask
+    movers = class_mask(batch.labels, spec.classes, ["seat"]) & ground
+    anchors = class_mask(batch.labels, spec.classes, ["table"]) & ground
+    room = room_to_pull(batch.floors, batch.translations, batch.half_sizes, batch.yaws, movers, anchors, ground,
+                        gap=0.12, radius=0.3)[0]
+    assert room[1, 0] and not room[2, 0] and not room[3, 0]
+    assert room[0].all() and room[4].all()  # a table or a cabinet is never drawn
+    assert room[1, 2] and room[2, 1]  # two chairs are no pair
+    wider = room_to_pull(batch.floors, batch.translations, batch.half_sizes, batch.yaws, movers, anchors, ground,
+                         gap=0.12, radius=0.2)[0]
+    assert wider[2, 0] and not wider[3, 0]  # a 0.4 m agent still passes the north chair, not the east one

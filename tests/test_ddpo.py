@@ -243,6 +243,17 @@ def test_physics_penalty_is_the_overlap_volume_plus_the_out_of_bound_area_and_de
     assert pushed.item() == pytest.approx(2 * (0.4 + 0.05), abs=1e-3)  # in place of the overlap
     pushed.sum().backward()
     assert x_under.grad[0, 0, 0] > 0 > x_under.grad[0, 1, 0]  # the chair is pushed out, back to the 0.05 m gap
+    walkway = physics_penalty(x_under.detach(), dining, under.floors, contact=at_table, contact_gap_weight=2.0,
+                              contact_gap_walkway=True)
+    assert walkway.item() == pytest.approx(pushed.item(), rel=1e-6)  # 0.9 m behind the chair once out: drawn
+    walled = SceneBatch.from_layouts([make_layout([box("dining_chair", 1.6, 1.0, 0.25, 0.25),
+                                                   box("dining_table", 1.75, 1.0, 0.3, 0.4),
+                                                   box("cabinet", 0.7, 1.0, 0.2, 0.5)], room="diningroom")])
+    x_walled = walled.encode(dining)  # the cabinet 0.45 m behind the chair: out at the gap, 0.0 m
+    assert physics_penalty(x_walled, dining, walled.floors, contact=at_table, contact_gap_weight=2.0).item() == \
+        pytest.approx(2 * (0.4 + 0.05), abs=1e-3)
+    assert physics_penalty(x_walled, dining, walled.floors, contact=at_table, contact_gap_weight=2.0,
+                           contact_gap_walkway=True).item() == pytest.approx(0.0, abs=1e-6)  # left under its table
     depth = physics_penalty(x_under.detach(), dining, under.floors, overlap_measure="depth")
     assert depth.item() == pytest.approx(0.4 + 0.02, abs=1e-3)  # out along x, the shorter way, to a 0.02 m gap
     spared_depth = physics_penalty(x_under.detach(), dining, under.floors, overlap_measure="depth", contact=at_table)
@@ -683,3 +694,30 @@ def test_the_rl_stack_takes_priors_that_predict_x0_or_v_with_slot_identity(predi
     after = adapter_weights(model)
     assert model.epoch == 1 and any(not torch.equal(before[k], after[k]) for k in before)
     assert all(torch.isfinite(v).all() for v in after.values())
+
+
+def test_narrow_passages_close_or_open_each_gap_too_narrow_to_walk_through():
+    """In a 4 x 3 m room, two cabinets 0.3 m apart and 1 m from every wall: the gap is charged min(0.3 - 0.05, 0.6 -
+    0.3) = 0.25 and descending it closes the gap; 0.4 m apart, 0.2, and descending opens it. A chair 0.3 m from its
+    table is not charged (chairs stand close at their table); a cabinet 0.3 m from a wall is."""
+    from agents.physics_gradient import narrow_passages
+    from iarcs_env.scene import SceneBatch
+    from scene_factory import box, make_layout
+
+    def charged(objects, room="diningroom"):
+        batch = SceneBatch.from_layouts([make_layout(objects, room=room)])
+        t = batch.translations.double().requires_grad_(True)
+        value = narrow_passages(t, batch.half_sizes.double(), batch.yaws.double(), batch.labels, batch.spec,
+                                batch.floors, batch.ground_mask)
+        value.sum().backward()
+        return value.item(), t.grad[0, :, 0]
+
+    value, grad = charged([box("cabinet", 1.5, 1.5, 0.2, 0.3), box("cabinet", 2.2, 1.5, 0.2, 0.3)])  # x 1.3..1.7, 2.0..2.4
+    assert value == pytest.approx(0.25, abs=1e-6)
+    assert grad[0] < 0 < grad[1]  # descending moves them together: closed
+    value, grad = charged([box("cabinet", 1.5, 1.5, 0.2, 0.3), box("cabinet", 2.3, 1.5, 0.2, 0.3)])
+    assert value == pytest.approx(0.2, abs=1e-6)
+    assert grad[0] > 0 > grad[1]  # apart: opened to 0.6 m
+    assert charged([box("dining_table", 1.5, 1.5, 0.3, 0.4), box("dining_chair", 2.2, 1.5, 0.2, 0.2)])[0] == 0.0
+    value, grad = charged([box("cabinet", 0.5, 1.5, 0.2, 0.3)])  # x 0.3..0.7: 0.3 m from the west wall
+    assert value == pytest.approx(0.25, abs=1e-6) and grad[0] > 0  # pushed to the wall
