@@ -25,7 +25,8 @@ from iarcs_env.tasks import get_task
 FIXTURE = Path(__file__).parent / "fixtures" / "shipped_samples.json"
 UPDATE = os.environ.get("IARCS_UPDATE_SHIPPED_SAMPLES") == "1"
 TASK_ADAPTERS = [name for name in shipped_adapters("bedroom") if name != "stage1"]
-CHECKPOINTS = [("bedroom", None), ("livingroom", None), ("diningroom", None), ("bedroom", "stage1"),
+CHECKPOINTS = [("bedroom", None), ("livingroom", None), ("diningroom", None),
+               ("bedroom", "stage1"), ("diningroom", "stage1"),
                *(("bedroom", name) for name in TASK_ADAPTERS)]
 
 
