@@ -4,7 +4,7 @@ have no way down that keeps their relations and walkways (issue 39).
 
     .venv/bin/python research/layout_descent.py --room livingroom PRIOR.json --out DESCENDED.json \\
         [--steps 300] [--reach-weight 5] [--out-of-bound-weight 5] [--out-of-bound-shrink 0] [--refresh 20] \\
-        [--contact-gap-weight 3 --contact-gap 0.12 [--contact-gap-walkway]]
+        [--contact-gap-weight 3 --contact-gap 0.12 [--contact-gap-walkway]] [--passage-weight 1]
     iarcs evaluate --scenes DESCENDED.json --reference floors.json --features none --out report.json
 
 Each room's objects move on the floor (x and z; heights, sizes, yaws and classes kept) by
@@ -14,7 +14,8 @@ depth, the out-of-bound area weighed 5 (``--out-of-bound-weight``), the data's c
 and dining rooms, nightstand-bed in bedrooms); ``--reach-weight`` adds the walkway term, ``--out-of-bound-shrink 0``
 charges the whole footprint's area outside (R_out spares 0.05 m a side; without the margin the walkway term rests
 objects just through a wall). The contact pairs are not charged (depth) unless ``--contact-gap-weight`` draws each
-to a gap, as ``ddpo.contact_gap_weight`` does.
+to a gap, as ``ddpo.contact_gap_weight`` does; ``--passage-weight`` closes or opens each gap too narrow to walk
+through, as ``ddpo.passage_weight`` does.
 """
 
 from __future__ import annotations
@@ -44,6 +45,8 @@ def main() -> None:
     parser.add_argument("--contact-gap", type=float, default=0.05)
     parser.add_argument("--contact-gap-walkway", action="store_true",
                         help="draw a pair out only where a walkway stays behind it (ddpo.contact_gap_walkway)")
+    parser.add_argument("--passage-weight", type=float, default=0.0,
+                        help="> 0: each gap too narrow to walk through closed or opened (ddpo.passage_weight)")
     parser.add_argument("--refresh", type=int, default=20, help="steps between the walkway term's grid searches")
     args = parser.parse_args()
     import torch
@@ -57,7 +60,8 @@ def main() -> None:
     layouts = load_layouts(args.scenes, args.room)
     weights = dict(out_of_bound_weight=args.out_of_bound_weight, out_of_bound_shrink=args.out_of_bound_shrink,
                    contact=CONTACT[args.room], overlap_measure="depth", contact_gap_weight=args.contact_gap_weight,
-                   contact_gap=args.contact_gap, contact_gap_walkway=args.contact_gap_walkway)
+                   contact_gap=args.contact_gap, contact_gap_walkway=args.contact_gap_walkway,
+                   passage_weight=args.passage_weight)
     out, before, after = [], [], []
     for start in range(0, len(layouts), 50):
         batch = SceneBatch.from_layouts(layouts[start:start + 50])
