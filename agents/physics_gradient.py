@@ -46,7 +46,7 @@ import torch
 from tensordict import TensorDict
 
 from iarcs_env import geometry as geo
-from iarcs_env.clearance import reach_clearance, room_to_pull
+from iarcs_env.clearance import EDGE_POINTS, reach_clearance, room_to_pull
 from iarcs_env.relation_fidelity import CHAIR_GAP
 from iarcs_env.relations import _point_segment_distance as point_segment_distance, class_mask, floor_edges
 from iarcs_env.scene import SceneBatch, decode_geometry, floor_half_extents, footprint_reach
@@ -142,7 +142,6 @@ def layout_penalty(trans: torch.Tensor, half: torch.Tensor, yaws: torch.Tensor, 
 
 PASSAGE_CLOSED = 0.05
 """m: a gap this narrow counts as closed (touching): ``passage_weight`` does not charge it."""
-_EDGE_POINTS = ((1, 1), (1, -1), (-1, 1), (-1, -1), (1, 0), (-1, 0), (0, 1), (0, -1))
 
 
 def passage_tent(gap: torch.Tensor) -> torch.Tensor:
@@ -163,7 +162,7 @@ def narrow_passages(trans, half, yaws, labels, spec, floors, ground) -> torch.Te
     pairs = (ground[:, :, None] & ground[:, None]).triu(1) & (separation < 0).any(-1) & ~skip
     between = (passage_tent((-separation).clamp_min(0).norm(dim=-1)) * pairs).sum((1, 2))
     reach = footprint_reach(half[..., 0:3:2], torch.cos(yaws), torch.sin(yaws))
-    points = trans[..., 0:3:2][:, :, None] + torch.tensor(_EDGE_POINTS).to(trans) * reach[:, :, None]  # (B, N, 8, 2)
+    points = trans[..., 0:3:2][:, :, None] + torch.tensor(EDGE_POINTS).to(trans) * reach[:, :, None]  # (B, N, 8, 2)
     edges = floor_edges(floors).to(trans)
     to_walls = point_segment_distance(points[:, :, :, None], edges[:, None, None, :, :2],
                                       edges[:, None, None, :, 2:]).amin(2)  # (B, N, E): each wall's nearest point
@@ -185,8 +184,7 @@ def penalty_weights(cfg: DDPOConfig, contact: dict | None = None, floor_weight: 
                 overlap_weight=cfg.overlap_weight, out_of_bound_shrink=cfg.out_of_bound_shrink, contact=contact,
                 contact_gap_weight=cfg.contact_gap_weight, contact_gap=cfg.contact_gap,
                 contact_gap_walkway=cfg.contact_gap_walkway, passage_weight=cfg.passage_weight,
-                overlap_measure=cfg.overlap_measure,
-                uncharged_pairs=cfg.uncharged_pairs)
+                overlap_measure=cfg.overlap_measure, uncharged_pairs=cfg.uncharged_pairs)
 
 
 def task_surrogate(task_reward, x0: torch.Tensor, stats, floors) -> tuple[torch.Tensor, torch.Tensor, float]:

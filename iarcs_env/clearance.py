@@ -65,6 +65,10 @@ def point_clearance(points, edges, translations, half_sizes, yaws, obstacles) ->
     return every.amin(-1).detach() + smooth - smooth.detach()
 
 
+EDGE_POINTS = ((1, 1), (1, -1), (-1, 1), (-1, -1), (1, 0), (-1, 0), (0, 1), (0, -1))
+"""A footprint's corners and edge midpoints, in units of its half-extents: where its distance to a wall is taken."""
+
+
 def room_to_pull(floors: Sequence[FloorPlan], translations, half_sizes, yaws, movers: torch.Tensor,
                  anchors: torch.Tensor, ground: torch.Tensor, gap: float, radius: float) -> torch.Tensor:
     """``(B, N, N)`` bool, no gradient: for a ``movers`` slot i and an ``anchors`` slot j (a chair and its table),
@@ -89,7 +93,7 @@ def room_to_pull(floors: Sequence[FloorPlan], translations, half_sizes, yaws, mo
 
         others = ground[:, None, None, :] & ~torch.eye(N, dtype=torch.bool, device=t.device)[None, :, None, :] \
             & ~torch.eye(N, dtype=torch.bool, device=t.device)[None, None, :, :]  # (B, i, j, k): k neither i nor j
-        corners = torch.tensor([[1, 1], [1, -1], [-1, 1], [-1, -1], [1, 0], [-1, 0], [0, 1], [0, -1]]).to(t)
+        corners = torch.tensor(EDGE_POINTS).to(t)
 
         edges = floor_edges(floors).to(t)
 
