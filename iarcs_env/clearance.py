@@ -80,35 +80,35 @@ def room_to_pull(floors: Sequence[FloorPlan], translations, half_sizes, yaws, mo
     from .scene import footprint_reach
 
     with torch.no_grad():
+        room = torch.ones(movers.shape + movers.shape[-1:], dtype=torch.bool, device=movers.device)
+        b, i, j = (movers[:, :, None] & anchors[:, None]).nonzero(as_tuple=True)  # only these pairs are asked
+        if not len(b):
+            return room
         t = translations.detach()
         c = t[..., 0:3:2]  # (B, N, 2) x, z
         ext = footprint_reach(half_sizes.detach()[..., 0:3:2], torch.cos(yaws.detach()), torch.sin(yaws.detach()))
-        B, N = movers.shape
-        d = c[:, :, None] - c[:, None]  # (B, N, N, 2): i's centre from j's
-        axis = (ext[:, :, None] + ext[:, None] - d.abs()).argmin(-1, keepdim=True)  # the axis parting them soonest
+        d = c[b, i] - c[b, j]  # (P, 2): i's centre from j's, a pair each
+        axis = (ext[b, i] + ext[b, j] - d.abs()).argmin(-1, keepdim=True)  # the axis parting them soonest
         side = torch.where(d.gather(-1, axis) >= 0, 1.0, -1.0).to(t)
-        ext_i, ext_j = ext[:, :, None].expand_as(d), ext[:, None].expand_as(d)
-        target = c[:, None].expand_as(d).gather(-1, axis) + side * (ext_j.gather(-1, axis) + gap + ext_i.gather(-1, axis))
-        moved = c[:, :, None].expand_as(d).scatter(-1, axis, target)  # (B, N, N, 2): i's centre once drawn from j
+        target = c[b, j].gather(-1, axis) + side * (ext[b, j].gather(-1, axis) + gap + ext[b, i].gather(-1, axis))
+        moved = c[b, i].scatter(-1, axis, target)  # (P, 2): i's centre once drawn from j
 
-        others = ground[:, None, None, :] & ~torch.eye(N, dtype=torch.bool, device=t.device)[None, :, None, :] \
-            & ~torch.eye(N, dtype=torch.bool, device=t.device)[None, None, :, :]  # (B, i, j, k): k neither i nor j
+        k = torch.arange(movers.shape[1], device=movers.device)
+        others = ground[b] & (k != i[:, None]) & (k != j[:, None])  # (P, N): k neither i nor j
         corners = torch.tensor(EDGE_POINTS).to(t)
+        edges = floor_edges(floors).to(t)[b]  # (P, E, 4)
 
-        edges = floor_edges(floors).to(t)
-
-        def distances(centre: torch.Tensor) -> torch.Tensor:  # (B, N, N, N + E): i's bounds at ``centre`` to the rest
-            apart = (centre[:, :, :, None] - c[:, None, None]).abs() - ext[:, :, None, None] - ext[:, None, None]
+        def distances(centre: torch.Tensor) -> torch.Tensor:  # (P, N + E): i's bounds at ``centre`` to the rest
+            apart = (centre[:, None] - c[b]).abs() - ext[b, i][:, None] - ext[b]
             to_objects = apart.clamp_min(0).norm(dim=-1).masked_fill(~others, float("inf"))
-            points = centre[:, :, :, None] + corners * ext[:, :, None, None]  # (B, N, N, 8, 2)
-            to_walls = _point_segment_distance(points[..., None, :], edges[:, None, None, None, :, :2],
-                                               edges[:, None, None, None, :, 2:]).amin(-2)  # (B, N, N, E)
+            points = centre[:, None] + corners * ext[b, i][:, None]  # (P, 8, 2)
+            to_walls = _point_segment_distance(points[:, :, None], edges[:, None, :, :2],
+                                               edges[:, None, :, 2:]).amin(-2)  # (P, E)
             return torch.cat([to_objects, to_walls], -1)
 
-        before, after = distances(c[:, :, None].expand_as(d)), distances(moved)
-        keeps = ((after >= 2 * radius) | (after >= before - 1e-3)).all(-1)  # no object's or wall's passage narrowed
-        pair = movers[:, :, None] & anchors[:, None]
-        return torch.where(pair, keeps, torch.ones_like(keeps))
+        before, after = distances(c[b, i]), distances(moved)
+        room[b, i, j] = ((after >= 2 * radius) | (after >= before - 1e-3)).all(-1)  # no passage narrowed
+        return room
 
 
 class ClearanceGrid:
