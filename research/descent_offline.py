@@ -47,7 +47,8 @@ def main(argv=None) -> None:
     parser.add_argument("--rooms", type=int, default=8192)
     parser.add_argument("--epochs", type=int, default=8)
     parser.add_argument("--batch", type=int, default=64)
-    parser.add_argument("--other-floors", type=int, default=64, help="held-out floors sampled after each pass")
+    parser.add_argument("--other-floors", type=int, default=64,
+                        help="held-out floors sampled after each pass (0: none, e.g. a run that only makes --cache)")
     parser.add_argument("--lr", type=float, help="learning rate (default: the config's)")
     parser.add_argument("--cache", action="append", default=[],
                         help="a file for the descended rooms: written once, then read; given more than once, the "
@@ -76,10 +77,14 @@ def main(argv=None) -> None:
     weight = adapted_object_weights(policy, target)
     t0 = torch.zeros(len(x_in), dtype=torch.long)
 
-    other = held_out_floors(cfg.room, args.other_floors)
+    other = held_out_floors(cfg.room, args.other_floors) if args.other_floors > 0 else []
+
+    def carried_over(who: str) -> str:
+        return f"; {len(other)} other floors, {who}: {sampled_on(policy, cfg, other, weights)}" if other else ""
+
     with policy.base_policy():
         prior_x0 = predictions(policy.predict_x0, x_in, cond).clamp(-1, 1)
-        print(f"{len(other)} other floors, the prior: {sampled_on(policy, cfg, other, weights)}")
+        print(f"{len(x_in)} rooms{carried_over('the prior')}")
     optimizer = torch.optim.Adam(policy.trainable_parameters(), lr=args.lr or algo.config.learning_rate)
     policy.model.eval()
     for epoch in range(1, args.epochs + 1):
@@ -94,9 +99,8 @@ def main(argv=None) -> None:
             optimizer.step()
             losses.append(loss.item())
         fit = explained(predictions(policy.predict_x0, x_in, cond).clamp(-1, 1) - prior_x0, target - prior_x0, weight)
-        print(f"epoch {epoch}: loss {sum(losses) / len(losses):.5f}, explains {fit:.0%} of the move on its rooms;"
-              f" {len(other)} other floors, the adapter: "
-              f"{sampled_on(policy, cfg, other, weights)}", flush=True)
+        print(f"epoch {epoch}: loss {sum(losses) / len(losses):.5f}, explains {fit:.0%} of the move on its rooms"
+              f"{carried_over('the adapter')}", flush=True)
         if args.out:  # a run folder iarcs sample --checkpoint reads, after every pass
             Path(args.out).mkdir(parents=True, exist_ok=True)
             (Path(args.out) / "config.yaml").write_text(yaml.safe_dump(dataclasses.asdict(cfg), sort_keys=False))

@@ -479,8 +479,10 @@ def test_descent_offline_caches_its_rooms_and_writes_a_run_folder_that_samples(t
     assert rooms["target"].shape == rooms["x_in"].shape and rooms["target"].abs().max() <= 1
     assert "6 rooms in" in first and "epoch 1: loss" in first and "the prior: penalty" in first
     assert "of the move on its rooms" in first
-    load("descent_offline").main(args + ["--init", str(tmp_path / "offline")])
-    assert "rooms in" not in capsys.readouterr().out  # read from the cache
+    load("descent_offline").main(args + ["--init", str(tmp_path / "offline"), "--other-floors", "0"])
+    again = capsys.readouterr().out
+    assert "rooms in" not in again and "epoch 1: loss" in again  # read from the cache
+    assert "other floors" not in again  # none sampled
     policy, cfg = load_trained_policy(tmp_path / "offline")
     assert cfg.algorithm == "descent-imitation"
     assert any(p.abs().sum() > 0 for n, p in policy.model.named_parameters() if "lora_B" in n)
