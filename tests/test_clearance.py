@@ -113,3 +113,6 @@ def test_a_chair_is_drawn_out_only_where_no_passage_narrows_below_the_agent():
     wider = room_to_pull(batch.floors, batch.translations, batch.half_sizes, batch.yaws, movers, anchors, ground,
                          gap=0.12, radius=0.2)[0]
     assert wider[2, 0] and not wider[3, 0]  # a 0.4 m agent still passes the north chair, not the east one
+    none = room_to_pull(batch.floors, batch.translations, batch.half_sizes, batch.yaws, movers & False, anchors, ground,
+                        gap=0.12, radius=0.3)
+    assert none.shape == (1, 6, 6) and none.all()  # no chair, nothing to refuse
