@@ -106,6 +106,12 @@ class PretrainConfig:
     overlap_spares_contact: bool = False
     """The overlap loss charges only pairs that do not overlap in the data (:func:`overlap_excess`'s
     ``spare_contact``): the living and dining rooms' chairs stand under their tables in the data."""
+    overlap_contact_gap: float = 0.0
+    """With ``overlap_spares_contact``: pairs whose footprints come within this gap (m) of each other in the data
+    are spared too (``contact_gap``): the living rooms' chairs stand at their tables' edges."""
+    overlap_contact_volume: float = math.inf
+    """With ``overlap_spares_contact``: the spared pairs are charged their excess overlap beyond this volume (m^3;
+    ``contact_volume``), so that a chair is free to stand at or under its table, not deep in it. inf: not charged."""
     overlap_max_timestep: int = 100
     """The overlap loss applies below this t only: at higher noise x0_hat is a blurred average of layouts
     whose boxes overlap by nature (about 9 m^3 per scene at t = 400 for the 3,000-step prior)."""
@@ -187,7 +193,7 @@ class PretrainConfig:
         for name in ("num_scenes", "steps", "batch_size", "checkpoint_every", "log_every", "eval_every"):
             if getattr(self, name) <= 0:
                 raise ValueError(f"{name} must be positive, got {getattr(self, name)}")
-        for name in ("overlap_weight", "out_of_bound_weight"):
+        for name in ("overlap_weight", "out_of_bound_weight", "overlap_contact_gap", "overlap_contact_volume"):
             if getattr(self, name) < 0:
                 raise ValueError(f"{name} must be at least 0, got {getattr(self, name)}")
         for name in ("translation_weight", "elevation_weight"):
@@ -364,7 +370,8 @@ def batch_loss(model: Callable, schedule: NoiseSchedule, batch: TrainingBatch, c
     penalties = []
     if cfg.overlap_weight:
         penalties.append(overlap_excess(spec, stats, batch.extents, cfg.overlap_weight, cfg.overlap_max_timestep,
-                                        cfg.overlap_spares_contact))
+                                        cfg.overlap_spares_contact, cfg.overlap_contact_gap,
+                                        cfg.overlap_contact_volume))
     if cfg.out_of_bound_weight:
         penalties.append(out_of_bound_excess(spec, stats, batch.extents, batch.points, cfg.out_of_bound_weight,
                                              cfg.out_of_bound_max_timestep))

@@ -3,11 +3,12 @@
 
 from __future__ import annotations
 
+import math
 from typing import Callable
 
 import torch
 
-from iarcs_env.geometry import bounds_overlaps
+from iarcs_env.geometry import bounds_overlaps, bounds_separations
 from iarcs_env.scene import box_corners_xz, decode_geometry
 from iarcs_env.schedule import NoiseSchedule
 from iarcs_env.stats import DatasetStats
@@ -31,7 +32,8 @@ def excess_overlap_volume(placed: torch.Tensor, data: torch.Tensor) -> torch.Ten
 
 
 def overlap_excess(spec, stats: DatasetStats, extents: torch.Tensor, weight: float = 1.0,
-                   max_timestep: int = NoiseSchedule().num_train_timesteps, spare_contact: bool = False) -> Callable:
+                   max_timestep: int = NoiseSchedule().num_train_timesteps, spare_contact: bool = False,
+                   contact_gap: float = 0.0, contact_volume: float = math.inf) -> Callable:
     """The ``x0_penalty`` of :meth:`NoiseSchedule.training_loss` for ``overlap_weight``: per scene with
     t < ``max_timestep``, ``weight`` times the sum over pairs of objects (non-empty slots of x0) of
     relu(A(x0_hat) - A(x0)) * H(x0): A the overlap area of the two footprints' axis-aligned bounds (exact
@@ -40,7 +42,10 @@ def overlap_excess(spec, stats: DatasetStats, extents: torch.Tensor, weight: flo
     the overlap volume beyond the data's and moves objects apart on the floor, it cannot be lowered by
     shrinking, turning or lifting them (a lamp above a bed costs nothing). ``spare_contact``: only the pairs
     whose footprints do not overlap in the data are charged; the data's contact (a chair under its table) is left
-    to the DDPM loss (it did not keep the chairs in their tables: docs/results/prior_bedroom_small.md)."""
+    to the DDPM loss. ``contact_gap`` (m): pairs whose footprints' bounds come closer than this in the data count
+    as contact too (a chair drawn up to its table edge): charged, x0_hat's errors into the table would cost and its
+    errors away from it not, so the loss would stand the data's chairs off their tables (docs/design.md).
+    ``contact_volume`` (m^3): the spared pairs are charged their excess beyond this volume (inf: nothing)."""
 
     def overlaps(x, extents):  # (B, N, N, 3) overlap lengths of each pair of boxes' bounds along x, y and z
         return bounds_overlaps(*decode_geometry(x, stats, extents))
@@ -49,10 +54,11 @@ def overlap_excess(spec, stats: DatasetStats, extents: torch.Tensor, weight: flo
         objects = x0[..., 8:].argmax(-1) != spec.empty_index
         pairs = (objects[:, :, None] & objects[:, None]).triu(1)
         placed = overlaps(torch.cat([x0_hat[..., :3], x0[..., 3:]], -1), extents)  # predicted positions, data's boxes
-        data = overlaps(x0, extents)
-        excess = excess_overlap_volume(placed, data) * pairs
+        separations = bounds_separations(*decode_geometry(x0, stats, extents))
+        excess = excess_overlap_volume(placed, separations.clamp_min(0)) * pairs
         if spare_contact:
-            excess = excess * (data[..., 0] * data[..., 2] == 0)
+            contact = separations[..., 0:3:2].amin(-1) > -contact_gap
+            excess = torch.where(contact, (excess - contact_volume).clamp_min(0), excess)
         return excess.flatten(1).sum(1)
 
     return lambda x0_hat, x0, t: weight * on_rows(t < max_timestep, per_scene, x0_hat, x0, extents)

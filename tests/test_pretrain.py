@@ -308,6 +308,16 @@ def test_overlap_loss_measures_the_excess_over_the_data_and_pushes_objects_apart
     spared = overlap_excess(BEDROOM, stats, extents, weight=2.0, max_timestep=100, spare_contact=True)
     assert float(penalty(x_deeper, x0, early)) == pytest.approx(2.0 * (float(exact) + 0.02), rel=1e-3)
     assert float(spared(x_deeper, x0, early)) == pytest.approx(2.0 * float(exact), rel=1e-4)
+    # the wardrobe stands 0.35 m from the bed in the data (0.1 m along z): spared as contact within a 0.4 m gap,
+    # charged within 0.3 m
+    near = {gap: overlap_excess(BEDROOM, stats, extents, weight=2.0, max_timestep=100, spare_contact=True,
+                                contact_gap=gap) for gap in (0.3, 0.4)}
+    assert float(near[0.3](x_hat.detach(), x0, early)) == pytest.approx(2.0 * float(exact), rel=1e-4)
+    assert float(near[0.4](x_hat.detach(), x0, early)) == 0.0
+    # charged only beyond a contact volume
+    beyond = overlap_excess(BEDROOM, stats, extents, weight=2.0, max_timestep=100, spare_contact=True,
+                            contact_gap=0.4, contact_volume=0.02)
+    assert float(beyond(x_hat.detach(), x0, early)) == pytest.approx(2.0 * (float(exact) - 0.02), rel=1e-4)
     with pytest.raises(ValueError, match="overlap_weight"):
         PretrainConfig(overlap_weight=-1)
 
