@@ -6,8 +6,9 @@ dining chairs never do; a chair pulled out that far closes the walkway behind it
 
     .venv/bin/python research/chair_placement.py --room diningroom data=floors.json prior=prior.json run=S.json
 
-``--chair dining_chair`` counts that class alone. ``--restore PRIOR --from-t 0 100`` (after the files) adds, under each file, its rooms noised to each t and restored by PRIOR (20 DDIM
-steps, eta 1; t = 0: the chain's last step alone): where a prior moves the chairs the data hands it.
+``--chair dining_chair`` counts that class alone. ``--restore PRIOR --from-t 0 100`` (after the files) adds, under
+each file, its rooms noised to each t and restored by PRIOR (20 DDIM steps, eta 1; t = 0: the chain's last step
+alone): where a prior moves the chairs the data hands it.
 """
 
 from __future__ import annotations

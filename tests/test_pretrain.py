@@ -308,8 +308,8 @@ def test_overlap_loss_measures_the_excess_over_the_data_and_pushes_objects_apart
     spared = overlap_excess(BEDROOM, stats, extents, weight=2.0, max_timestep=100, spare_contact=True)
     assert float(penalty(x_deeper, x0, early)) == pytest.approx(2.0 * (float(exact) + 0.02), rel=1e-3)
     assert float(spared(x_deeper, x0, early)) == pytest.approx(2.0 * float(exact), rel=1e-4)
-    # the wardrobe stands 0.35 m from the bed in the data (0.1 m along z): spared as contact within a 0.4 m gap,
-    # charged within 0.3 m
+    # the wardrobe's bounds stand 0.35 m from the bed's along x in the data (0.1 m along z): spared as contact
+    # within a 0.4 m gap, charged within 0.3 m
     near = {gap: overlap_excess(BEDROOM, stats, extents, weight=2.0, max_timestep=100, spare_contact=True,
                                 contact_gap=gap) for gap in (0.3, 0.4)}
     assert float(near[0.3](x_hat.detach(), x0, early)) == pytest.approx(2.0 * float(exact), rel=1e-4)
@@ -320,6 +320,8 @@ def test_overlap_loss_measures_the_excess_over_the_data_and_pushes_objects_apart
     assert float(beyond(x_hat.detach(), x0, early)) == pytest.approx(2.0 * (float(exact) - 0.02), rel=1e-4)
     with pytest.raises(ValueError, match="overlap_weight"):
         PretrainConfig(overlap_weight=-1)
+    with pytest.raises(ValueError, match="overlap_contact_gap"):
+        PretrainConfig(overlap_contact_gap=-0.1)
 
 
 def test_pretraining_adds_the_overlap_loss_when_asked(tmp_path):
