@@ -36,9 +36,10 @@ GROUPS = {"positions": [0, 2], "elevation": [1], "sizes": [3, 4, 5], "angle": [6
 
 
 def centre_errors(prior: ScenePrior, x0: torch.Tensor, floor: torch.Tensor, extents: torch.Tensor,
-                  noise: torch.Tensor, t: int) -> tuple[float, float, float, dict]:
+                  noise: torch.Tensor, t: int) -> tuple[float, float, float, dict, dict]:
     """Median distance (m) of the objects' floor positions in x0_hat and in x_t from those in x0 at timestep t,
-    the plain x0 loss (mean squared error over all features and slots) and each feature group's share of it."""
+    the plain x0 loss (mean squared error over all features and slots), each feature group's share of it, and per
+    class (of the data's objects) its objects' count and x0_hat's median distance."""
     ts = torch.full((len(x0),), t)
     x_t = prior.schedule.q_sample(x0, ts, noise)
     with torch.no_grad():
@@ -46,13 +47,17 @@ def centre_errors(prior: ScenePrior, x0: torch.Tensor, floor: torch.Tensor, exte
     objects = x0[..., 8:].argmax(-1) != prior.spec.empty_index
     truth = decode_geometry(x0, prior.stats, extents)[0][..., 0:3:2]
 
-    def error(x):  # the data's sizes: only the positions differ
+    def distances(x):  # the data's sizes: only the positions differ
         moved = decode_geometry(torch.cat([x[..., :3], x0[..., 3:]], -1), prior.stats, extents)[0][..., 0:3:2]
-        return float((moved - truth).norm(dim=-1)[objects].median())
+        return (moved - truth).norm(dim=-1)
     squared = (x0_hat - x0) ** 2
     groups = dict(GROUPS, classes=list(range(8, x0.shape[-1])))
     shares = {name: float(squared[..., cols].sum() / squared.sum()) for name, cols in groups.items()}
-    return error(x0_hat), error(x_t), float(squared.mean()), shares
+    labels, hat = x0[..., 8:].argmax(-1), distances(x0_hat)
+    by_class = {prior.spec.classes[c]: (int((labels == c).sum()), float(hat[labels == c].median()))
+                for c in labels[objects].unique().tolist()}
+    return float(hat[objects].median()), float(distances(x_t)[objects].median()), float(squared.mean()), shares, \
+        by_class
 
 
 def convert(src: str, dst: str) -> None:
@@ -75,6 +80,7 @@ def main(argv=None) -> None:
     err.add_argument("--prior", required=True)
     err.add_argument("--t", type=int, nargs="+", default=[0, 20, 100, 400, 700])
     err.add_argument("--batch", type=int, default=128)
+    err.add_argument("--by-class", action="store_true", help="also x0_hat's median distance per class")
     conv = sub.add_parser("convert", help="an x0-prediction prior as a v-prediction one")
     conv.add_argument("src")
     conv.add_argument("dst")
@@ -90,9 +96,12 @@ def main(argv=None) -> None:
     print(f"{args.prior} ({prior.schedule.config.prediction_type} prediction), {args.batch} training rooms: median "
           "distance (m) of the objects' centres from the rooms', the x0 loss and its shares")
     for t in args.t:
-        hat, noisy, loss, shares = centre_errors(prior, batch.x0, batch.floor, batch.extents, batch.noise, t)
+        hat, noisy, loss, shares, by_class = centre_errors(prior, batch.x0, batch.floor, batch.extents, batch.noise, t)
         print(f"t {t:4d}: x0_hat {hat:.3f}, x_t {noisy:.3f}; x0 loss {loss:.4f} ("
               + ", ".join(f"{name} {share:.0%}" for name, share in shares.items()) + ")")
+        if args.by_class:
+            for name, (count, median) in sorted(by_class.items(), key=lambda kv: -kv[1][0]):
+                print(f"    {name:24s} {count:4d} objects  x0_hat {median:.3f}")
 
 
 if __name__ == "__main__":
