@@ -97,9 +97,6 @@ class PretrainConfig:
     max_timestep: int = 0
     """Train on noise levels t < ``max_timestep`` only (0: all T): a fine-tune of the low-noise steps, which
     place objects to the centimetre (validation losses stay over all t)."""
-    max_timestep_share: float = 1.0
-    """The share of each batch drawn at t < ``max_timestep``; the rest is drawn over all T, so that the steps
-    that place the objects keep being trained (1: the whole batch)."""
     overlap_weight: float = 0.0
     """Weight of an auxiliary loss on the predicted clean layout x0_hat (after DiffuScene's physical IoU
     loss): for every pair of objects of the training scene, the volume (m^3) by which their predicted
@@ -210,9 +207,6 @@ class PretrainConfig:
                 raise ValueError(f"{name} must be in [0, {num_t}], got {getattr(self, name)}")
         if not 0 <= self.max_timestep <= num_t:
             raise ValueError(f"max_timestep must be in [0, {num_t}] (0: all), got {self.max_timestep}")
-        if not 0 < self.max_timestep_share <= 1:
-            raise ValueError(f"max_timestep_share must be in (0, 1] (1: the whole batch at t < max_timestep), got "
-                             f"{self.max_timestep_share}")
         if not 0 <= self.ema_decay < 1:
             raise ValueError(f"ema_decay must be in [0, 1), got {self.ema_decay}")
         for k, extra in enumerate(self.extra_datasets):
@@ -362,11 +356,8 @@ def draw_batch(data: SceneTensors, cfg: PretrainConfig, spec, stats: DatasetStat
     if cfg.cond_drop_prob > 0:
         keep = torch.rand(size, generator=generator, device=device) >= cfg.cond_drop_prob
         floor = floor * keep[:, None, None]
-    num_t = NoiseSchedule().num_train_timesteps
-    t = torch.randint(0, cfg.max_timestep or num_t, (size,), generator=generator, device=device)
-    if cfg.max_timestep and cfg.max_timestep_share < 1:
-        anywhere = torch.rand(size, generator=generator, device=device) >= cfg.max_timestep_share
-        t = torch.where(anywhere, torch.randint(0, num_t, (size,), generator=generator, device=device), t)
+    t = torch.randint(0, cfg.max_timestep or NoiseSchedule().num_train_timesteps, (size,), generator=generator,
+                      device=device)
     noise = torch.randn(x0.shape, generator=generator, device=device)
     return TrainingBatch(x0, floor, t, noise, metric[5], metric[4])
 

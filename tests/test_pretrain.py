@@ -216,27 +216,6 @@ def test_low_noise_fine_tune_trains_only_below_max_timestep(tmp_path, monkeypatc
         tiny_config(tmp_path, max_timestep=1001)
 
 
-def test_a_share_of_the_batch_below_max_timestep_keeps_the_rest_over_all_noise_levels(tmp_path):
-    import agents.pretrain as pre
-
-    rooms = toy_bedrooms(40)
-    stats = replace(stats_for_training(rooms, "bedroom", True), translation_frame="room")
-    data = SceneTensors.from_layouts(rooms, BEDROOM.max_objects)
-
-    def timesteps(**settings):
-        cfg = tiny_config(tmp_path, **settings)
-        return pre.draw_batch(data, cfg, BEDROOM, stats, torch.Generator().manual_seed(0), 4000).t
-
-    low = (timesteps(max_timestep=100, max_timestep_share=0.5) < 100).float().mean()
-    assert abs(float(low) - (0.5 + 0.5 * 0.1)) < 0.03  # half drawn below 100, a tenth of the other half too
-    assert int(timesteps(max_timestep=100, max_timestep_share=0.5).max()) > 900
-    assert int(timesteps(max_timestep=100).max()) < 100  # share 1: the whole batch, as before
-    assert torch.equal(timesteps(), timesteps(max_timestep_share=0.5))  # no max_timestep: the share does nothing
-    for share in (0.0, 1.5):
-        with pytest.raises(ValueError, match="max_timestep_share must be in"):
-            tiny_config(tmp_path, max_timestep=100, max_timestep_share=share)
-
-
 def test_loss_feature_weights_weigh_the_floor_position_and_the_elevation():
     assert loss_feature_weights(PretrainConfig(), 30) is None  # the plain DDPM loss
     w = loss_feature_weights(PretrainConfig(translation_weight=3.0, elevation_weight=2.0), 30)
