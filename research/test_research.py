@@ -378,6 +378,23 @@ def test_chair_placement_restores_the_rooms_with_a_prior(tmp_path, capsys):
     assert rows[0][1] == rows[1][1] and float(rows[1][2].rstrip("%")) >= 75.0  # the same rooms; the chairs kept
 
 
+def test_skip_prediction_errors_per_class_add_up_to_the_rooms_objects():
+    """centre_errors on 12 procedural dining rooms and the shipped dining prior: at t = 0 with no noise the input is the
+    rooms themselves (scaled by sqrt(abar_0)), x0_hat is off by centimetres, and the per-class counts are the rooms' objects."""
+    from agents.pretrain_data import SceneTensors, encode_batch
+    from iarcs_env.datasets.procedural import generate_layouts
+
+    script = load("skip_prediction")
+    prior = ScenePrior.load_default("diningroom")
+    rooms = generate_layouts("diningroom", 12, seed=777)
+    data = SceneTensors.from_layouts(rooms, prior.num_slots)
+    x0, floor = encode_batch(prior.spec, prior.stats, *data.batch(torch.arange(len(rooms))))
+    hat, noisy, _, shares, by_class = script.centre_errors(prior, x0, floor, data.extents, torch.zeros_like(x0), 0)
+    assert noisy < 1e-3 and 0 < hat < 0.3 and abs(sum(shares.values()) - 1) < 1e-6
+    assert sum(count for count, _ in by_class.values()) == sum(len(room) for room in rooms)
+    assert by_class["dining_table"][0] == sum(room.labels.count("dining_table") for room in rooms)
+
+
 def test_object_moves_reads_each_class_move_and_what_it_cost_from_report_pairs(tmp_path):
     from iarcs_env.datasets import save_layouts
 
