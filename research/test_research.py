@@ -395,6 +395,31 @@ def test_skip_prediction_errors_per_class_add_up_to_the_rooms_objects():
     assert by_class["dining_table"][0] == sum(room.labels.count("dining_table") for room in rooms)
 
 
+def test_adapter_capacity_grows_the_task_adapter_without_changing_what_it_predicts():
+    """grow(): the wheelchair config's adapter (a copy of stage 1's rank-16 attention LoRA) grown to rank 32 on the
+    attention and feed-forward layers predicts the same x0_hat, and has the new layers' and ranks' weights to train."""
+    from agents.train import load_train_config
+    from iarcs_env.datasets.procedural import generate_layouts
+
+    script = load("adapter_capacity")  # puts research/ on the path
+    from descent_offline import build_with_targets
+
+    cfg = load_train_config(str(HERE.parent / "experiments/ablations/task_wheelchair_gradient.yaml"))
+    _, policy = build_with_targets(cfg)
+    prior, g = policy.prior, torch.Generator().manual_seed(0)
+    floors = [lay.centred().floor for lay in generate_layouts("bedroom", 4, seed=777)]
+    x0 = prior.sample_features(floors, 4, 1.0, g)
+    t, cond, classes = torch.full((4,), 100), prior.floor_condition(floors), x0[..., 8:].argmax(-1)
+    x_t = prior.schedule.q_sample(x0, t, torch.randn(x0.shape, generator=g))
+    with torch.no_grad():
+        before = policy.predict_x0(x_t, t, cond, classes)
+        script.grow(policy, cfg.adapter, "init", 32, r".*\.(q_proj|k_proj|v_proj|out_proj|ff\.[03])$")
+        after = policy.predict_x0(x_t, t, cond, classes)
+    assert torch.allclose(before, after, atol=1e-5)
+    ranks = {k: v.shape[0] for k, v in policy.model.state_dict().items() if f"lora_A.{cfg.adapter}." in k}
+    assert set(ranks.values()) == {32} and any(".ff.0." in k for k in ranks) and len(ranks) == 60
+
+
 def test_object_moves_reads_each_class_move_and_what_it_cost_from_report_pairs(tmp_path):
     from iarcs_env.datasets import save_layouts
 

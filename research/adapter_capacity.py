@@ -1,0 +1,118 @@
+"""Is the task adapter too small to hold the searched rooms? ``search_sft.py``'s fine-tune (its config's adapter,
+a copy of stage 1's LoRA, x0_hat regressed onto a ``--cache`` file of searched rooms) with more room to learn:
+``--rank R --targets REGEX`` grows the copy to rank R on the layers REGEX matches (stage 1's weights in its first
+ranks, zero elsewhere, so it starts as stage 1), ``--full`` trains the denoiser's own weights beside it. Then the
+held-out success (64 floors of seed 4242) and ``restore_probe.py``'s restoration of the first ``--probe`` rooms,
+which the fine-tune saw. Writes a run folder that ``iarcs sample --checkpoint`` reads (not with ``--full``: its
+denoiser is not saved).
+
+    .venv/bin/python research/adapter_capacity.py experiments/ablations/task_wheelchair_gradient.yaml ROOMS.pt \\
+        --task wheelchair (--rank 16 --targets REGEX | --full) [--lr 1e-3] [--out RUN]
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import sys
+from pathlib import Path
+
+import torch
+import yaml
+from peft import LoraConfig
+from tqdm import tqdm
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+from descent_offline import build_with_targets  # noqa: E402
+from restore_probe import figures, ground_move, restore  # noqa: E402
+from search_sft import cached_rooms, success  # noqa: E402
+from agents.physics_gradient import adapted_object_weights  # noqa: E402
+from agents.train import ADAPTERS_DIR, load_train_config  # noqa: E402
+from iarcs_env.datasets.procedural import generate_layouts  # noqa: E402
+
+
+def grow(policy, name: str, source: str, rank: int, targets: str) -> None:
+    """Replace adapter ``name`` by a rank-``rank`` LoRA on ``targets`` holding ``source``'s weights in its first
+    ranks (zero B elsewhere), so that the policy samples as before."""
+    model = policy.model
+    model.delete_adapter(name)
+    model.add_adapter(name, LoraConfig(r=rank, lora_alpha=rank, target_modules=targets, lora_dropout=0.0))
+    state, grown = model.state_dict(), {}
+    for key, value in state.items():
+        old = state.get(key.replace(f".{name}.", f".{source}."))
+        if f".{name}." in key and old is not None and ("lora_A" in key or "lora_B" in key):
+            new = value.clone()
+            if "lora_A" in key:
+                new[:old.shape[0]] = old
+            else:
+                new[:, :old.shape[1]] = old
+            grown[key] = new
+    model.load_state_dict(grown, strict=False)
+    policy.set_adapter(name)
+
+
+def main(argv=None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("config", help="a task training config (as search_sft.py's)")
+    parser.add_argument("rooms", help="a search_sft.py --cache file of searched rooms")
+    parser.add_argument("--task", required=True)
+    parser.add_argument("--rank", type=int, help="grow the adapter to this LoRA rank (with --targets)")
+    parser.add_argument("--targets", help="a regular expression of the layers the grown LoRA adapts")
+    parser.add_argument("--full", action="store_true", help="train the denoiser's own weights too")
+    parser.add_argument("--steps", type=int, default=1500)
+    parser.add_argument("--lr", type=float, default=1e-3)
+    parser.add_argument("--probe", type=int, default=256, help="rooms to restore after the fine-tune")
+    parser.add_argument("--out", help="write a run folder with the adapter")
+    args = parser.parse_args(argv)
+    if bool(args.rank) == args.full or bool(args.rank) != bool(args.targets):
+        parser.error("give either --rank with --targets, or --full")
+    torch.set_num_threads(1)
+    cfg = load_train_config(args.config)
+    _, policy = build_with_targets(cfg)
+    if args.rank:
+        grow(policy, cfg.adapter, "init", args.rank, args.targets)
+    for key, p in policy.model.named_parameters():
+        p.requires_grad_(f".{cfg.adapter}." in key or (args.full and "lora_" not in key))
+    params = [p for p in policy.model.parameters() if p.requires_grad]
+    print(f"{sum(p.numel() for p in params):,} parameters trained")
+    prior = policy.prior
+    rooms = cached_rooms(args.rooms, prior.spec, cfg)
+    x0, cond, classes = rooms.encode(prior.stats), prior.floor_condition(rooms.floors), rooms.labels
+    weight = adapted_object_weights(policy, x0)
+    other = [lay.centred().floor for lay in generate_layouts(cfg.room, 64, seed=4242)]
+    print(f"step 0: {args.task} on {len(other)} other floors {success(policy, other, args.task):.1%}", flush=True)
+    generator, schedule = torch.Generator().manual_seed(cfg.seed), policy.schedule
+    optimizer = torch.optim.Adam(params, lr=args.lr)
+    losses = []
+    for step in tqdm(range(1, args.steps + 1), desc="fine-tuning on the searched rooms", unit="step"):
+        rows = torch.randint(0, len(x0), (64,), generator=generator)
+        t = torch.randint(0, schedule.num_train_timesteps, (64,), generator=generator)
+        noise = torch.randn(x0[rows].shape, generator=generator)
+        x_t = prior.with_classes(schedule.q_sample(x0[rows], t, noise), t, classes[rows], generator)
+        pred = policy.predict_x0(x_t, t, cond[rows], classes[rows], straight_through=True)
+        loss = ((pred - x0[rows]).square() * weight[rows]).sum() / weight[rows].sum().clamp_min(1)
+        optimizer.zero_grad(set_to_none=True)
+        loss.backward()
+        torch.nn.utils.clip_grad_norm_(params, 1.0)
+        optimizer.step()
+        losses.append(loss.item())
+        if step % 250 == 0 or step == args.steps:
+            tqdm.write(f"step {step}: loss {sum(losses) / len(losses):.4f}; {args.task} on {len(other)} other floors "
+                       f"{success(policy, other, args.task):.1%}")
+            losses = []
+    if args.out and not args.full:
+        Path(args.out).mkdir(parents=True, exist_ok=True)
+        (Path(args.out) / "config.yaml").write_text(yaml.safe_dump(dataclasses.asdict(cfg), sort_keys=False))
+        policy.save_adapter(Path(args.out) / ADAPTERS_DIR)
+    probe = rooms[:args.probe]
+    print(f"{len(probe)} of its rooms as handed: {figures(probe, args.task)}")
+    for start in (0, 50, 100, 200):
+        out = restore(policy, probe, start, cfg.num_steps, cfg.eta)
+        print(f"restored from t = {start}: {figures(out, args.task)}, ground objects moved "
+              f"{ground_move(probe, out):.3f} m (median)", flush=True)
+
+
+if __name__ == "__main__":
+    main()
