@@ -54,11 +54,9 @@ def placements(room: SceneBatch, i: int, grid: float) -> SceneBatch:
     return batch[keep.numpy()]
 
 
-def search_room(room: SceneBatch, task: str, grid: float = 0.25, sweeps: int = 2, margin: float = 0.0,
-                nearest: bool = False) -> SceneBatch:
+def search_room(room: SceneBatch, task: str, grid: float = 0.25, sweeps: int = 2, margin: float = 0.0) -> SceneBatch:
     """The one-room batch ``room`` (float64 geometry) rearranged greedily for ``task`` (module doc), scored with
-    ``margin``: rooms that pass with room to spare, so that they still pass placed a little off. Of the placements
-    scoring best, the first on the grid, or with ``nearest`` the one closest to where the object stood."""
+    ``margin``: rooms that pass with room to spare, so that they still pass placed a little off."""
     if task not in SCORES:
         raise ValueError(f"no layout search for task {task!r}; tasks with one: {', '.join(SCORES)}")
     score, passing = SCORES[task]
@@ -74,19 +72,16 @@ def search_room(room: SceneBatch, task: str, grid: float = 0.25, sweeps: int = 2
                 continue
             got = np.concatenate([score(options[s:s + CHUNK], margin) for s in range(0, len(options), CHUNK)])
             k = int(np.argmax(got))
-            if nearest:
-                moved = (options.translations[:, i] - room.translations[0, i]).norm(dim=-1).numpy()
-                k = int(np.argmin(np.where(got >= got[k] - 1e-9, moved, np.inf)))
             if got[k] > best + 1e-9:
                 best, room = got[k], options[[k]]
     return room
 
 
-def search_rooms(batch: SceneBatch, task: str, grid: float = 0.25, sweeps: int = 2, margin: float = 0.0,
-                 nearest: bool = False) -> SceneBatch:
+def search_rooms(batch: SceneBatch, task: str, grid: float = 0.25, sweeps: int = 2, margin: float = 0.0
+                 ) -> SceneBatch:
     """Every room of ``batch`` rearranged by :func:`search_room` (geometry in float64)."""
     double = SceneBatch(batch.spec, batch.labels, batch.translations.double(), batch.half_sizes.double(),
                         batch.yaws.double(), batch.floors, batch.ids)
-    rooms = [search_room(double[[b]], task, grid, sweeps, margin, nearest) for b in range(len(batch))]
+    rooms = [search_room(double[[b]], task, grid, sweeps, margin) for b in range(len(batch))]
     return SceneBatch(batch.spec, batch.labels, torch.cat([r.translations for r in rooms]),
                       double.half_sizes, torch.cat([r.yaws for r in rooms]), batch.floors, batch.ids)

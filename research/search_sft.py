@@ -57,13 +57,13 @@ def cached_rooms(path: str, spec, cfg) -> SceneBatch:
     return SceneBatch(spec, *(fields[k] for k in FIELDS), floors)
 
 
-def searched_rooms(policy, floors, task: str, generator, margin: float = 0.0, nearest: bool = False) -> SceneBatch:
+def searched_rooms(policy, floors, task: str, generator, margin: float = 0.0) -> SceneBatch:
     """The policy's rooms on ``floors``, rearranged by the layout search for ``task`` (scored with ``margin``)."""
     out = []
     for i in tqdm(range(0, len(floors), CHUNK), desc="rooms sampled and searched", unit="chunk"):
         with torch.no_grad():
             batch = policy.sample(floors[i:i + CHUNK], generator)
-        out.append(search_rooms(batch, task, margin=margin, nearest=nearest))
+        out.append(search_rooms(batch, task, margin=margin))
     return cat(out)
 
 
@@ -88,8 +88,6 @@ def main(argv=None) -> None:
     parser.add_argument("--floor-seed", type=int, help="the training floors' seed (default: the config's)")
     parser.add_argument("--margin", type=float, default=0.0,
                         help="search for rooms that pass with a wheelchair and turning disk this much (m) wider")
-    parser.add_argument("--nearest", action="store_true",
-                        help="of the placements scoring best, the one nearest where the object stood (not the first)")
     parser.add_argument("--out", help="write a run folder with the trained adapter")
     parser.add_argument("--init", help="a run folder (of --out) whose adapter to start from")
     parser.add_argument("--lora-targets", help="a regular expression of the layers the LoRA adapts, in place of the "
@@ -108,8 +106,7 @@ def main(argv=None) -> None:
                          "a run of its own)")
     else:
         seed = cfg.floor_seed if args.floor_seed is None else args.floor_seed
-        rooms = searched_rooms(policy, training_floors(cfg.room, args.rooms, seed), args.task, generator, args.margin,
-                               args.nearest)
+        rooms = searched_rooms(policy, training_floors(cfg.room, args.rooms, seed), args.task, generator, args.margin)
         if args.cache:
             torch.save({"floor_seed": seed, **{k: getattr(rooms, k) for k in FIELDS}}, args.cache[0])
     floors = rooms.floors

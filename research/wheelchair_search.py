@@ -34,7 +34,6 @@ def main(argv=None) -> None:
     parser.add_argument("--rooms", type=int, help="only the first N rooms")
     parser.add_argument("--grid", type=float, default=0.25, help="spacing (m) of the placements tried")
     parser.add_argument("--sweeps", type=int, default=2, help="passes over the room's objects")
-    parser.add_argument("--nearest", action="store_true", help="of the best placements, the one nearest the object")
     args = parser.parse_args(argv)
     torch.set_num_threads(1)
     layouts = load_layouts(args.scenes, "bedroom")[:args.rooms]
@@ -42,7 +41,7 @@ def main(argv=None) -> None:
     for lay in tqdm(layouts, desc="rooms searched", unit="room"):
         room = batch_float64([lay])
         before.append(wheelchair_score(room)[0])
-        room = search_room(room, "wheelchair", args.grid, args.sweeps, nearest=args.nearest)
+        room = search_room(room, "wheelchair", args.grid, args.sweeps)
         after.append(wheelchair_score(room)[0])
         out += room.to_layouts()
     save_layouts(out, args.out)
