@@ -1,13 +1,13 @@
 """Is the task adapter too small to hold the searched rooms? ``search_sft.py``'s fine-tune (its config's adapter,
-a copy of stage 1's LoRA, x0_hat regressed onto a ``--cache`` file of searched rooms) with more room to learn:
+a copy of stage 1's LoRA, x0_hat regressed onto ``--cache`` files of searched rooms) with more room to learn:
 ``--rank R --targets REGEX`` grows the copy to rank R on the layers REGEX matches (stage 1's weights in its first
 ranks, zero elsewhere, so it starts as stage 1), ``--full`` trains the denoiser's own weights beside it. Then the
-held-out success (64 floors of seed 4242) and ``restore_probe.py``'s restoration of the first ``--probe`` rooms,
+success on ``--held-out`` floors of seed 4242 and ``restore_probe.py``'s restoration of the first ``--probe`` rooms,
 which the fine-tune saw. Writes a run folder that ``iarcs sample --checkpoint`` reads (not with ``--full``: its
 denoiser is not saved).
 
     .venv/bin/python research/adapter_capacity.py experiments/ablations/task_wheelchair_gradient.yaml ROOMS.pt \\
-        --task wheelchair (--rank 16 --targets REGEX | --full) [--lr 1e-3] [--out RUN]
+        [MORE.pt ...] --task wheelchair (--rank 16 --targets REGEX | --full) [--lr 1e-3] [--out RUN]
 """
 
 from __future__ import annotations
@@ -27,7 +27,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from descent_offline import build_with_targets  # noqa: E402
 from restore_probe import figures, ground_move, restore  # noqa: E402
-from search_sft import cached_rooms, success  # noqa: E402
+from search_sft import cached_rooms, cat, success  # noqa: E402
 from agents.physics_gradient import adapted_object_weights  # noqa: E402
 from agents.train import ADAPTERS_DIR, load_train_config  # noqa: E402
 from iarcs_env.datasets.procedural import generate_layouts  # noqa: E402
@@ -56,13 +56,14 @@ def grow(policy, name: str, source: str, rank: int, targets: str) -> None:
 def main(argv=None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("config", help="a task training config (as search_sft.py's)")
-    parser.add_argument("rooms", help="a search_sft.py --cache file of searched rooms")
+    parser.add_argument("rooms", nargs="+", help="search_sft.py --cache files of searched rooms (together)")
     parser.add_argument("--task", required=True)
     parser.add_argument("--rank", type=int, help="grow the adapter to this LoRA rank (with --targets)")
     parser.add_argument("--targets", help="a regular expression of the layers the grown LoRA adapts")
     parser.add_argument("--full", action="store_true", help="train the denoiser's own weights too")
     parser.add_argument("--steps", type=int, default=1500)
     parser.add_argument("--lr", type=float, default=1e-3)
+    parser.add_argument("--held-out", type=int, default=64, help="held-out floors (seed 4242) to measure success on")
     parser.add_argument("--probe", type=int, default=256, help="rooms to restore after the fine-tune")
     parser.add_argument("--out", help="write a run folder with the adapter")
     args = parser.parse_args(argv)
@@ -78,10 +79,11 @@ def main(argv=None) -> None:
     params = [p for p in policy.model.parameters() if p.requires_grad]
     print(f"{sum(p.numel() for p in params):,} parameters trained")
     prior = policy.prior
-    rooms = cached_rooms(args.rooms, prior.spec, cfg)
+    caches = [cached_rooms(path, prior.spec, cfg) for path in args.rooms]
+    rooms = caches[0] if len(caches) == 1 else cat(caches)
     x0, cond, classes = rooms.encode(prior.stats), prior.floor_condition(rooms.floors), rooms.labels
     weight = adapted_object_weights(policy, x0)
-    other = [lay.centred().floor for lay in generate_layouts(cfg.room, 64, seed=4242)]
+    other = [lay.centred().floor for lay in generate_layouts(cfg.room, args.held_out, seed=4242)]
     print(f"step 0: {args.task} on {len(other)} other floors {success(policy, other, args.task):.1%}", flush=True)
     generator, schedule = torch.Generator().manual_seed(cfg.seed), policy.schedule
     optimizer = torch.optim.Adam(params, lr=args.lr)
