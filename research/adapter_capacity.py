@@ -13,12 +13,10 @@ denoiser is not saved).
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import sys
 from pathlib import Path
 
 import torch
-import yaml
 from peft import LoraConfig
 from tqdm import tqdm
 
@@ -27,9 +25,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from descent_offline import build_with_targets  # noqa: E402
 from restore_probe import figures, ground_move, restore  # noqa: E402
-from search_sft import cached_rooms, cat, success  # noqa: E402
-from agents.physics_gradient import adapted_object_weights  # noqa: E402
-from agents.train import ADAPTERS_DIR, load_train_config  # noqa: E402
+from search_sft import cached_rooms, cat, fine_tune, save_run, success  # noqa: E402
+from agents.train import load_train_config  # noqa: E402
 from iarcs_env.datasets.procedural import generate_layouts  # noqa: E402
 
 
@@ -81,33 +78,16 @@ def main(argv=None) -> None:
     prior = policy.prior
     caches = [cached_rooms(path, prior.spec, cfg) for path in args.rooms]
     rooms = caches[0] if len(caches) == 1 else cat(caches)
-    x0, cond, classes = rooms.encode(prior.stats), prior.floor_condition(rooms.floors), rooms.labels
-    weight = adapted_object_weights(policy, x0)
     other = [lay.centred().floor for lay in generate_layouts(cfg.room, args.held_out, seed=4242)]
     print(f"step 0: {args.task} on {len(other)} other floors {success(policy, other, args.task):.1%}", flush=True)
-    generator, schedule = torch.Generator().manual_seed(cfg.seed), policy.schedule
-    optimizer = torch.optim.Adam(params, lr=args.lr)
-    losses = []
-    for step in tqdm(range(1, args.steps + 1), desc="fine-tuning on the searched rooms", unit="step"):
-        rows = torch.randint(0, len(x0), (64,), generator=generator)
-        t = torch.randint(0, schedule.num_train_timesteps, (64,), generator=generator)
-        noise = torch.randn(x0[rows].shape, generator=generator)
-        x_t = prior.with_classes(schedule.q_sample(x0[rows], t, noise), t, classes[rows], generator)
-        pred = policy.predict_x0(x_t, t, cond[rows], classes[rows], straight_through=True)
-        loss = ((pred - x0[rows]).square() * weight[rows]).sum() / weight[rows].sum().clamp_min(1)
-        optimizer.zero_grad(set_to_none=True)
-        loss.backward()
-        torch.nn.utils.clip_grad_norm_(params, 1.0)
-        optimizer.step()
-        losses.append(loss.item())
-        if step % 250 == 0 or step == args.steps:
-            tqdm.write(f"step {step}: loss {sum(losses) / len(losses):.4f}; {args.task} on {len(other)} other floors "
-                       f"{success(policy, other, args.task):.1%}")
-            losses = []
+
+    def report(step: int, loss: float) -> None:
+        tqdm.write(f"step {step}: loss {loss:.4f}; {args.task} on {len(other)} other floors "
+                   f"{success(policy, other, args.task):.1%}")
+
+    fine_tune(policy, rooms, params, args.steps, args.lr, torch.Generator().manual_seed(cfg.seed), 250, report)
     if args.out and not args.full:
-        Path(args.out).mkdir(parents=True, exist_ok=True)
-        (Path(args.out) / "config.yaml").write_text(yaml.safe_dump(dataclasses.asdict(cfg), sort_keys=False))
-        policy.save_adapter(Path(args.out) / ADAPTERS_DIR)
+        save_run(policy, cfg, args.out)
     probe = rooms[:args.probe]
     print(f"{len(probe)} of its rooms as handed: {figures(probe, args.task)}")
     for start in (0, 50, 100, 200):

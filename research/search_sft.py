@@ -72,6 +72,42 @@ def success(policy, floors, task: str) -> float:
         return float(task_results(task, policy.sample(floors, torch.Generator().manual_seed(0))).mean())
 
 
+def fine_tune(policy, rooms: SceneBatch, params: list, steps: int, lr: float, generator: torch.Generator,
+              every: int, report, batch: int = 64) -> None:
+    """``steps`` steps of ``batch`` of ``rooms``, each noised to a uniform timestep, the policy's x0_hat regressed onto
+    the room (its adapted features), training ``params`` with Adam; ``report(step, mean loss)`` every ``every`` steps
+    and at the last."""
+    prior, schedule = policy.prior, policy.schedule
+    x0, cond, classes = rooms.encode(prior.stats), prior.floor_condition(rooms.floors), rooms.labels
+    weight = adapted_object_weights(policy, x0)
+    optimizer = torch.optim.Adam(params, lr=lr)
+    policy.model.eval()
+    losses = []
+    for step in tqdm(range(1, steps + 1), desc="fine-tuning on the searched rooms", unit="step"):
+        rows = torch.randint(0, len(x0), (batch,), generator=generator)
+        t = torch.randint(0, schedule.num_train_timesteps, (batch,), generator=generator)
+        noise = torch.randn(x0[rows].shape, generator=generator)
+        x_t = prior.with_classes(schedule.q_sample(x0[rows], t, noise), t, classes[rows], generator)
+        pred = policy.predict_x0(x_t, t, cond[rows], classes[rows], straight_through=True)
+        w = weight[rows]
+        loss = ((pred - x0[rows]).square() * w).sum() / w.sum().clamp_min(1)
+        optimizer.zero_grad(set_to_none=True)
+        loss.backward()
+        torch.nn.utils.clip_grad_norm_(params, 1.0)
+        optimizer.step()
+        losses.append(loss.item())
+        if step % every == 0 or step == steps:
+            report(step, sum(losses) / len(losses))
+            losses = []
+
+
+def save_run(policy, cfg, out: str) -> None:
+    """A run folder ``iarcs sample --checkpoint`` reads: the config and the adapter."""
+    Path(out).mkdir(parents=True, exist_ok=True)
+    (Path(out) / "config.yaml").write_text(yaml.safe_dump(dataclasses.asdict(cfg), sort_keys=False))
+    policy.save_adapter(Path(out) / ADAPTERS_DIR)
+
+
 def main(argv=None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("config", help="a task training config (room, prior, init_adapter, adapt, required_objects)")
@@ -111,37 +147,18 @@ def main(argv=None) -> None:
             torch.save({"floor_seed": seed, **{k: getattr(rooms, k) for k in FIELDS}}, args.cache[0])
     floors = rooms.floors
     print(f"{len(rooms)} searched rooms: {args.task} {task_results(args.task, rooms).mean():.1%}")
-    x0, cond, classes = rooms.encode(prior.stats), prior.floor_condition(floors), rooms.labels
-    weight = adapted_object_weights(policy, x0)
     other = [lay.centred().floor for lay in generate_layouts(cfg.room, args.other_floors, seed=4242)]
     own = floors[:args.other_floors]
     print(f"step 0: {args.task} on {len(other)} other floors {success(policy, other, args.task):.1%}, on the first "
           f"{len(own)} of its training floors {success(policy, own, args.task):.1%}", flush=True)
-    optimizer = torch.optim.Adam(policy.trainable_parameters(), lr=args.lr)
-    schedule = policy.schedule
-    policy.model.eval()
-    losses = []
-    for step in tqdm(range(1, args.steps + 1), desc="fine-tuning on the searched rooms", unit="step"):
-        rows = torch.randint(0, len(x0), (args.batch,), generator=generator)
-        t = torch.randint(0, schedule.num_train_timesteps, (args.batch,), generator=generator)
-        noise = torch.randn(x0[rows].shape, generator=generator)
-        x_t = prior.with_classes(schedule.q_sample(x0[rows], t, noise), t, classes[rows], generator)
-        pred = policy.predict_x0(x_t, t, cond[rows], classes[rows], straight_through=True)
-        w = weight[rows]
-        loss = ((pred - x0[rows]).square() * w).sum() / w.sum().clamp_min(1)
-        optimizer.zero_grad(set_to_none=True)
-        loss.backward()
-        torch.nn.utils.clip_grad_norm_(policy.trainable_parameters(), 1.0)
-        optimizer.step()
-        losses.append(loss.item())
-        if step % args.eval_every == 0 or step == args.steps:
-            tqdm.write(f"step {step}: loss {sum(losses) / len(losses):.4f}; {args.task} on {len(other)} other floors "
-                       f"{success(policy, other, args.task):.1%}")
-            losses = []
-            if args.out:  # a run folder iarcs sample --checkpoint reads
-                Path(args.out).mkdir(parents=True, exist_ok=True)
-                (Path(args.out) / "config.yaml").write_text(yaml.safe_dump(dataclasses.asdict(cfg), sort_keys=False))
-                policy.save_adapter(Path(args.out) / ADAPTERS_DIR)
+    def report(step: int, loss: float) -> None:
+        tqdm.write(f"step {step}: loss {loss:.4f}; {args.task} on {len(other)} other floors "
+                   f"{success(policy, other, args.task):.1%}")
+        if args.out:
+            save_run(policy, cfg, args.out)
+
+    fine_tune(policy, rooms, policy.trainable_parameters(), args.steps, args.lr, generator, args.eval_every, report,
+              args.batch)
 
 
 if __name__ == "__main__":
