@@ -73,19 +73,20 @@ def success(policy, floors, task: str) -> float:
 
 
 def fine_tune(policy, rooms: SceneBatch, params: list, steps: int, lr: float, generator: torch.Generator,
-              every: int, report, batch: int = 64) -> None:
-    """``steps`` steps of ``batch`` of ``rooms``, each noised to a uniform timestep, the policy's x0_hat regressed onto
-    the room (its adapted features), training ``params`` with Adam; ``report(step, mean loss)`` every ``every`` steps
-    and at the last."""
+              every: int, report, batch: int = 64, t_range: tuple[int, int] | None = None) -> None:
+    """``steps`` steps of ``batch`` of ``rooms``, each noised to a uniform timestep (in ``t_range`` = [lo, hi) when
+    given), the policy's x0_hat regressed onto the room (its adapted features), training ``params`` with Adam;
+    ``report(step, mean loss)`` every ``every`` steps and at the last."""
     prior, schedule = policy.prior, policy.schedule
+    lo, hi = t_range or (0, schedule.num_train_timesteps)
     x0, cond, classes = rooms.encode(prior.stats), prior.floor_condition(rooms.floors), rooms.labels
     weight = adapted_object_weights(policy, x0)
     optimizer = torch.optim.Adam(params, lr=lr)
     policy.model.eval()
     losses = []
-    for step in tqdm(range(1, steps + 1), desc="fine-tuning on the searched rooms", unit="step"):
+    for step in tqdm(range(1, steps + 1), desc="fine-tuning on the rooms", unit="step"):
         rows = torch.randint(0, len(x0), (batch,), generator=generator)
-        t = torch.randint(0, schedule.num_train_timesteps, (batch,), generator=generator)
+        t = torch.randint(lo, hi, (batch,), generator=generator)
         noise = torch.randn(x0[rows].shape, generator=generator)
         x_t = prior.with_classes(schedule.q_sample(x0[rows], t, noise), t, classes[rows], generator)
         pred = policy.predict_x0(x_t, t, cond[rows], classes[rows], straight_through=True)

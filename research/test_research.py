@@ -831,3 +831,42 @@ def test_notch_probe_conditions_on_the_bounding_rectangle_but_counts_against_the
     seen, n_seen = script.out_of_true_floor(prior, [floor] * 32, [floor] * 32)
     blind, n_blind = script.out_of_true_floor(prior, [floor] * 32, [script.bounding_rectangle(floor)] * 32)
     assert blind / n_blind > 3 * seen / n_seen
+
+
+
+def test_self_distill_keeps_only_clean_passes_and_fine_tunes_on_its_own_rooms(tmp_path, capsys):
+    import dataclasses
+
+    from conftest import perturb_zero_init, write_tiny_train_config
+    from agents.train import load_train_config, load_trained_policy
+    from iarcs_env.metrics import batch_float64
+    from iarcs_env.tasks import task_results
+
+    script = load("self_distill")  # puts research/ on the path
+    from descent_offline import build_with_targets
+    from search_sft import save_run
+
+    (passing,) = search.search_room(batch_float64([boxed_in()]), "wheelchair").to_layouts()
+    through_wall = passing.translations.copy()
+    through_wall[2, 0] = passing.floor.vertices[:, 0].min()  # the wardrobe half through the wall
+    outside = dataclasses.replace(passing, translations=through_wall)
+    rooms = batch_float64([boxed_in(), passing, outside])
+    assert task_results("wheelchair", rooms).tolist() == [False, True, True]  # the last one only R_out rejects
+    assert script.clean_passes(rooms, "wheelchair").tolist() == [False, True, False]
+
+    config = write_tiny_train_config(tmp_path, algorithm="physics-gradient", adapt=["position", "yaw"])
+    perturb_zero_init(ScenePrior.load(tmp_path / "prior.pt"), 0).save(tmp_path / "prior.pt")  # gradients flow
+    cfg = load_train_config(config)
+    save_run(build_with_targets(cfg)[1], cfg, str(tmp_path / "start"))
+    common = [str(config), "--task", "wheelchair", "--init", str(tmp_path / "start"), "--rooms", "3", "--per-floor",
+              "2", "--other-floors", "2", "--batch", "2", "--steps", "2", "--eval-every", "2"]
+    script.main(common + ["--keep", "all", "--t-range", "0", "100", "--cache", str(tmp_path / "all.pt"),
+                          "--out", str(tmp_path / "run")])
+    assert "6 rooms kept on 3 floors" in capsys.readouterr().out
+    assert torch.load(tmp_path / "all.pt")["floor_index"] == [0, 0, 1, 1, 2, 2]
+    policy, cfg = load_trained_policy(tmp_path / "run")
+    assert cfg.adapt == ["position", "yaw"]
+    every = torch.load(tmp_path / "all.pt")
+    torch.save({**every, "floor_index": [], **{k: every[k][:0] for k in script.FIELDS}}, tmp_path / "none.pt")
+    with pytest.raises(SystemExit, match="no room passed wheelchair cleanly"):
+        script.main(common + ["--cache", str(tmp_path / "none.pt")])
