@@ -4,10 +4,12 @@ steps and eta, the rooms' classes given, as ``search_sft.py`` trains): per t, Co
 restored rooms, and the median distance (m) their ground objects moved; with ``--jitter``, the same figures of the rooms
 with random noise of each sigma (m) added to their positions, for a move of the same size with no direction. A prior
 pulls rooms off its own manifold back to it at low noise; an adapter that learned a task's rooms keeps them. t = 0 is
-the chain's last step alone. ``eval_prior.py --denoise-from`` does the same for a prior and its data's rooms.
+the chain's last step alone. With ``--task``, also how many of the rooms passing as handed still pass (and of the others
+now pass); with ``--by-class``, per class, how far its objects moved and the pass rate with them put back where they
+were handed. ``eval_prior.py --denoise-from`` does the same for a prior and its data's rooms.
 
     .venv/bin/python research/restore_probe.py experiments/ablations/task_wheelchair_gradient.yaml ROOMS.pt \\
-        --task wheelchair [--init RUN] [--t 0 50 100 200 300 500]
+        --task wheelchair [--init RUN] [--t 0 50 100 200 300 500] [--by-class]
     .venv/bin/python research/restore_probe.py experiments/ablations/stage1_livingroom_depth.yaml DESCENDED.json
 """
 
@@ -70,10 +72,36 @@ def jitter(rooms: SceneBatch, sigma: float, generator: torch.Generator) -> Scene
     return SceneBatch(rooms.spec, rooms.labels, rooms.translations + noise, rooms.half_sizes, rooms.yaws, rooms.floors)
 
 
-def figures(rooms: SceneBatch, task: str | None) -> str:
-    """Col_obj (and the task's pass rate) of ``rooms``."""
+def figures(rooms: SceneBatch, task: str | None, handed: SceneBatch | None = None) -> str:
+    """Col_obj (and the task's pass rate) of ``rooms``; with the ``handed`` rooms they came from, the share of those
+    passing as handed that still pass, and of the others that now pass."""
     text = f"Col_obj {evaluate_layouts(rooms.to_layouts())['Col_obj']:.1%}"
-    return text + (f", {task} {task_results(task, rooms).mean():.1%}" if task else "")
+    if not task:
+        return text
+    passes = task_results(task, rooms)
+    text += f", {task} {passes.mean():.1%}"
+    if handed is not None:
+        before = task_results(task, handed)
+        share = [f"{p.mean():.1%}" if len(p) else "–" for p in (passes[before], passes[~before])]
+        text += f" (of those passing as handed {share[0]} still pass, of the others {share[1]})"
+    return text
+
+
+def put_back(restored: SceneBatch, handed: SceneBatch, task: str, min_objects: int = 20) -> str:
+    """Per class (of ``min_objects`` ground objects or more): the median distance (m) its ground objects moved, and
+    the task's pass rate of the restored rooms with that class's objects put back where they were handed (position
+    and yaw): which class's drift costs the passes."""
+    move = (restored.translations - handed.translations)[..., 0:3:2].norm(dim=-1)
+    parts = []
+    for c, name in enumerate(handed.spec.classes):
+        mask = (handed.labels == c) & handed.ground_mask
+        if mask.sum() < min_objects:
+            continue
+        trans, yaws = restored.translations.clone(), restored.yaws.clone()
+        trans[mask], yaws[mask] = handed.translations[mask], handed.yaws[mask]
+        fixed = SceneBatch(restored.spec, restored.labels, trans, restored.half_sizes, yaws, restored.floors)
+        parts.append(f"{name} {float(move[mask].median()):.2f} m, {task_results(task, fixed).mean():.1%}")
+    return "; ".join(parts)
 
 
 def main(argv=None) -> None:
@@ -86,6 +114,8 @@ def main(argv=None) -> None:
     parser.add_argument("--t", type=int, nargs="+", default=[0, 50, 100, 200, 300, 500],
                         help="timesteps to restore from (each the chain's first step at or below it)")
     parser.add_argument("--jitter", type=float, nargs="*", default=[], help="position noise sigmas (m) to compare")
+    parser.add_argument("--by-class", action="store_true",
+                        help="with --task: per class, how far its objects moved and the pass rate with them put back")
     args = parser.parse_args(argv)
     torch.set_num_threads(1)
     cfg = load_train_config(args.config)
@@ -101,8 +131,10 @@ def main(argv=None) -> None:
               f"{ground_move(rooms, out):.3f} m (median)")
     for start in args.t:
         out = restore(policy, rooms, start, cfg.num_steps, cfg.eta)
-        print(f"restored from t = {start}: {figures(out, args.task)}, ground objects moved "
+        print(f"restored from t = {start}: {figures(out, args.task, rooms)}, ground objects moved "
               f"{ground_move(rooms, out):.3f} m (median)", flush=True)
+        if args.by_class and args.task:
+            print(f"  put back, by class (median move, {args.task}): {put_back(out, rooms, args.task)}", flush=True)
 
 
 if __name__ == "__main__":

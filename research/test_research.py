@@ -789,6 +789,7 @@ def test_restore_probe_restores_handed_rooms_with_their_classes_and_reports_each
     assert out[0] == "2 rooms as handed: Col_obj 0.0%, wheelchair 0.0%"
     assert [line.split(":")[0] for line in out[1:]] == ["jittered by sigma = 0.1 m", "restored from t = 0",
                                                         "restored from t = 500"]
+    assert "(of those passing as handed – still pass, of the others 0.0%)" in out[2]
     from agents.train import load_train_config
     from descent_offline import build_with_targets
 
@@ -870,3 +871,41 @@ def test_self_distill_keeps_only_clean_passes_and_fine_tunes_on_its_own_rooms(tm
     torch.save({**every, "floor_index": [], **{k: every[k][:0] for k in script.FIELDS}}, tmp_path / "none.pt")
     with pytest.raises(SystemExit, match="no room passed wheelchair cleanly"):
         script.main(common + ["--cache", str(tmp_path / "none.pt")])
+
+
+def test_joint_expert_adds_the_searched_rooms_regression_to_each_gradient_update(tmp_path, capsys):
+    import yaml
+
+    from conftest import perturb_zero_init, write_tiny_train_config
+    import agents.physics_gradient as pg
+    from agents.train import ADAPTERS_DIR
+    from safetensors.torch import load_file
+
+    config = write_tiny_train_config(tmp_path, algorithm="physics-gradient", adapt=["position", "yaw"], epochs=1)
+    perturb_zero_init(ScenePrior.load(tmp_path / "prior.pt"), 0).save(tmp_path / "prior.pt")  # gradients flow
+    load("search_sft").main([str(config), "--task", "wheelchair", "--rooms", "3", "--other-floors", "2", "--steps", "0",
+                             "--cache", str(tmp_path / "rooms.pt")])
+    script, train, penalty = load("joint_expert"), pg.PhysicsGradient.train, pg.config_penalty
+    adapters = {}
+    for weight in (0.0, 100.0):
+        out = tmp_path / f"run{weight:g}"
+        (tmp_path / "joint.yaml").write_text(yaml.safe_dump({**yaml.safe_load(config.read_text()), "out": str(out)}))
+        script.main([str(tmp_path / "joint.yaml"), "--cache", str(tmp_path / "rooms.pt"), "--weight", str(weight),
+                     "--batch", "2"])
+        adapters[weight] = load_file(next((out / ADAPTERS_DIR).rglob("adapter_model.safetensors")))
+    assert "3 searched rooms regressed onto beside the gradient" in capsys.readouterr().out
+    assert any(not torch.equal(adapters[0.0][k], adapters[100.0][k]) for k in adapters[0.0])
+    assert (pg.PhysicsGradient.train, pg.config_penalty) == (train, penalty)  # put back after the run
+    (tmp_path / "ddpo.yaml").write_text(config.read_text().replace("physics-gradient", "ddpo"))
+    with pytest.raises(SystemExit, match="algorithm must be physics-gradient"):
+        script.main([str(tmp_path / "ddpo.yaml"), "--cache", str(tmp_path / "rooms.pt")])
+
+
+def test_restore_probe_puts_each_class_back_to_find_whose_drift_costs_the_pass():
+    from iarcs_env.metrics import batch_float64
+
+    probe = load("restore_probe")
+    handed = search.search_room(batch_float64([boxed_in()]), "wheelchair")  # the bed pulled off the nightstand's wall
+    restored = batch_float64([boxed_in().centred()])  # the bed drifted back: the nightstand boxed in again
+    parts = dict(part.split(" ", 1) for part in probe.put_back(restored, handed, "wheelchair", min_objects=1).split("; "))
+    assert parts == {"double_bed": "1.08 m, 100.0%", "nightstand": "0.00 m, 0.0%", "wardrobe": "0.00 m, 0.0%"}
