@@ -18,14 +18,13 @@ from pathlib import Path
 
 import torch
 from peft import LoraConfig
-from tqdm import tqdm
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from descent_offline import build_with_targets  # noqa: E402
 from restore_probe import figures, ground_move, restore  # noqa: E402
-from search_sft import cached_rooms, cat, fine_tune, save_run, success  # noqa: E402
+from search_sft import cached_rooms, cat, fine_tune, held_out_report, save_run, success  # noqa: E402
 from agents.train import load_train_config  # noqa: E402
 from iarcs_env.datasets.procedural import generate_layouts  # noqa: E402
 
@@ -80,12 +79,8 @@ def main(argv=None) -> None:
     rooms = caches[0] if len(caches) == 1 else cat(caches)
     other = [lay.centred().floor for lay in generate_layouts(cfg.room, args.held_out, seed=4242)]
     print(f"step 0: {args.task} on {len(other)} other floors {success(policy, other, args.task):.1%}", flush=True)
-
-    def report(step: int, loss: float) -> None:
-        tqdm.write(f"step {step}: loss {loss:.4f}; {args.task} on {len(other)} other floors "
-                   f"{success(policy, other, args.task):.1%}")
-
-    fine_tune(policy, rooms, params, args.steps, args.lr, torch.Generator().manual_seed(cfg.seed), 250, report)
+    fine_tune(policy, rooms, params, args.steps, args.lr, torch.Generator().manual_seed(cfg.seed), 250,
+              held_out_report(policy, cfg, args.task, other))
     if args.out and not args.full:
         save_run(policy, cfg, args.out)
     probe = rooms[:args.probe]

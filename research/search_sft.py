@@ -102,6 +102,16 @@ def fine_tune(policy, rooms: SceneBatch, params: list, steps: int, lr: float, ge
             losses = []
 
 
+def held_out_report(policy, cfg, task: str, other: list, out: str | None = None):
+    """A ``report`` for :func:`fine_tune`: the loss and the task's success on the ``other`` floors, and with ``out`` the
+    run folder written (:func:`save_run`)."""
+    def report(step: int, loss: float) -> None:
+        tqdm.write(f"step {step}: loss {loss:.4f}; {task} on {len(other)} other floors {success(policy, other, task):.1%}")
+        if out:
+            save_run(policy, cfg, out)
+    return report
+
+
 def save_run(policy, cfg, out: str) -> None:
     """A run folder ``iarcs sample --checkpoint`` reads: the config and the adapter."""
     Path(out).mkdir(parents=True, exist_ok=True)
@@ -152,14 +162,8 @@ def main(argv=None) -> None:
     own = floors[:args.other_floors]
     print(f"step 0: {args.task} on {len(other)} other floors {success(policy, other, args.task):.1%}, on the first "
           f"{len(own)} of its training floors {success(policy, own, args.task):.1%}", flush=True)
-    def report(step: int, loss: float) -> None:
-        tqdm.write(f"step {step}: loss {loss:.4f}; {args.task} on {len(other)} other floors "
-                   f"{success(policy, other, args.task):.1%}")
-        if args.out:
-            save_run(policy, cfg, args.out)
-
-    fine_tune(policy, rooms, policy.trainable_parameters(), args.steps, args.lr, generator, args.eval_every, report,
-              args.batch)
+    fine_tune(policy, rooms, policy.trainable_parameters(), args.steps, args.lr, generator, args.eval_every,
+              held_out_report(policy, cfg, args.task, other, args.out), args.batch)
 
 
 if __name__ == "__main__":

@@ -23,7 +23,7 @@ from tqdm import tqdm
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from search_sft import CHUNK, FIELDS, cat, fine_tune, save_run, success, training_floors  # noqa: E402
+from search_sft import CHUNK, FIELDS, cat, fine_tune, held_out_report, success, training_floors  # noqa: E402
 from agents.train import ADAPTERS_DIR, load_train_config  # noqa: E402
 from descent_offline import build_with_targets  # noqa: E402
 from iarcs_env.datasets.procedural import generate_layouts  # noqa: E402
@@ -97,15 +97,8 @@ def main(argv=None) -> None:
     print(f"{len(rooms)} rooms kept on {len(set(index))} floors: {args.task} {task_results(args.task, rooms).mean():.1%}")
     other = [lay.centred().floor for lay in generate_layouts(cfg.room, args.other_floors, seed=4242)]
     print(f"step 0: {args.task} on {len(other)} other floors {success(policy, other, args.task):.1%}", flush=True)
-
-    def report(step: int, loss: float) -> None:
-        tqdm.write(f"step {step}: loss {loss:.4f}; {args.task} on {len(other)} other floors "
-                   f"{success(policy, other, args.task):.1%}")
-        if args.out:
-            save_run(policy, cfg, args.out)
-
-    fine_tune(policy, rooms, policy.trainable_parameters(), args.steps, args.lr, generator, args.eval_every, report,
-              args.batch, args.t_range)
+    fine_tune(policy, rooms, policy.trainable_parameters(), args.steps, args.lr, generator, args.eval_every,
+              held_out_report(policy, cfg, args.task, other, args.out), args.batch, args.t_range)
 
 
 if __name__ == "__main__":
