@@ -19,7 +19,7 @@ import torch
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from search_sft import cached_rooms, cat  # noqa: E402
+from search_sft import cached_rooms, cat, denoising_square  # noqa: E402
 import agents.physics_gradient as pg  # noqa: E402
 from agents.train import load_train_config, run  # noqa: E402
 
@@ -36,14 +36,10 @@ class ExpertRooms:
 
     def square(self) -> torch.Tensor:
         """Mean square of x0_hat against ``batch`` of the rooms (their adapted features), at uniform timesteps."""
-        prior, g = self.policy.prior, self.generator
+        g = self.generator
         rows = torch.randint(0, len(self.x0), (self.batch,), generator=g)
-        t = torch.randint(0, prior.schedule.num_train_timesteps, (self.batch,), generator=g)
-        x0, classes = self.x0[rows], self.classes[rows]
-        x_t = prior.with_classes(prior.schedule.q_sample(x0, t, torch.randn(x0.shape, generator=g)), t, classes, g)
-        pred = self.policy.predict_x0(x_t, t, self.cond[rows], classes, straight_through=True)
-        w = self.weights[rows]
-        return ((pred - x0).square() * w).sum() / w.sum().clamp_min(1)
+        t = torch.randint(0, self.policy.prior.schedule.num_train_timesteps, (self.batch,), generator=g)
+        return denoising_square(self.policy, self.x0[rows], self.cond[rows], self.classes[rows], self.weights[rows], t, g)
 
 
 def main(argv=None) -> None:

@@ -72,13 +72,24 @@ def success(policy, floors, task: str) -> float:
         return float(task_results(task, policy.sample(floors, torch.Generator().manual_seed(0))).mean())
 
 
+def denoising_square(policy, x0: torch.Tensor, cond: torch.Tensor, classes: torch.Tensor, weight: torch.Tensor,
+                     t: torch.Tensor, generator: torch.Generator) -> torch.Tensor:
+    """The mean square (``weight``ed) of the policy's x0_hat against rooms ``x0`` (model features) noised to timesteps
+    ``t``, their ``classes`` given: the denoising loss of a fine-tuning onto them."""
+    prior = policy.prior
+    noise = torch.randn(x0.shape, generator=generator)
+    x_t = prior.with_classes(prior.schedule.q_sample(x0, t, noise), t, classes, generator)
+    pred = policy.predict_x0(x_t, t, cond, classes, straight_through=True)
+    return ((pred - x0).square() * weight).sum() / weight.sum().clamp_min(1)
+
+
 def fine_tune(policy, rooms: SceneBatch, params: list, steps: int, lr: float, generator: torch.Generator,
               every: int, report, batch: int = 64, t_range: tuple[int, int] | None = None) -> None:
     """``steps`` steps of ``batch`` of ``rooms``, each noised to a uniform timestep (in ``t_range`` = [lo, hi) when
     given), the policy's x0_hat regressed onto the room (its adapted features), training ``params`` with Adam;
     ``report(step, mean loss)`` every ``every`` steps and at the last."""
-    prior, schedule = policy.prior, policy.schedule
-    lo, hi = t_range or (0, schedule.num_train_timesteps)
+    prior = policy.prior
+    lo, hi = t_range or (0, prior.schedule.num_train_timesteps)
     x0, cond, classes = rooms.encode(prior.stats), prior.floor_condition(rooms.floors), rooms.labels
     weight = adapted_object_weights(policy, x0)
     optimizer = torch.optim.Adam(params, lr=lr)
@@ -87,11 +98,7 @@ def fine_tune(policy, rooms: SceneBatch, params: list, steps: int, lr: float, ge
     for step in tqdm(range(1, steps + 1), desc="fine-tuning on the rooms", unit="step"):
         rows = torch.randint(0, len(x0), (batch,), generator=generator)
         t = torch.randint(lo, hi, (batch,), generator=generator)
-        noise = torch.randn(x0[rows].shape, generator=generator)
-        x_t = prior.with_classes(schedule.q_sample(x0[rows], t, noise), t, classes[rows], generator)
-        pred = policy.predict_x0(x_t, t, cond[rows], classes[rows], straight_through=True)
-        w = weight[rows]
-        loss = ((pred - x0[rows]).square() * w).sum() / w.sum().clamp_min(1)
+        loss = denoising_square(policy, x0[rows], cond[rows], classes[rows], weight[rows], t, generator)
         optimizer.zero_grad(set_to_none=True)
         loss.backward()
         torch.nn.utils.clip_grad_norm_(params, 1.0)
