@@ -24,9 +24,9 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from descent_offline import build_with_targets  # noqa: E402
 from restore_probe import figures, ground_move, restore  # noqa: E402
-from search_sft import cached_rooms, cat, fine_tune, held_out_report, save_run, success  # noqa: E402
+from search_sft import (HELD_OUT_SEED, cached_rooms, cat, fine_tune, held_out_report, procedural_floors,  # noqa: E402
+                        save_run, success)
 from agents.train import load_train_config  # noqa: E402
-from iarcs_env.datasets.procedural import generate_layouts  # noqa: E402
 
 
 def grow(policy, name: str, source: str, rank: int, targets: str) -> None:
@@ -77,7 +77,7 @@ def main(argv=None) -> None:
     prior = policy.prior
     caches = [cached_rooms(path, prior.spec, cfg) for path in args.rooms]
     rooms = caches[0] if len(caches) == 1 else cat(caches)
-    other = [lay.centred().floor for lay in generate_layouts(cfg.room, args.held_out, seed=4242)]
+    other = procedural_floors(cfg.room, args.held_out, HELD_OUT_SEED)
     print(f"step 0: {args.task} on {len(other)} other floors {success(policy, other, args.task):.1%}", flush=True)
     fine_tune(policy, rooms, params, args.steps, args.lr, torch.Generator().manual_seed(cfg.seed), 250,
               held_out_report(policy, cfg, args.task, other))

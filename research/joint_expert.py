@@ -39,7 +39,8 @@ class ExpertRooms:
         g = self.generator
         rows = torch.randint(0, len(self.x0), (self.batch,), generator=g)
         t = torch.randint(0, self.policy.prior.schedule.num_train_timesteps, (self.batch,), generator=g)
-        return denoising_square(self.policy, self.x0[rows], self.cond[rows], self.classes[rows], self.weights[rows], t, g)
+        return denoising_square(self.policy, self.x0[rows], self.cond[rows], self.classes[rows], self.weights[rows], t,
+                                g)
 
 
 def main(argv=None) -> None:

@@ -40,7 +40,12 @@ CHUNK = 64
 FIELDS = ("labels", "translations", "half_sizes", "yaws")
 
 
-def training_floors(room: str, count: int, seed: int) -> list:
+HELD_OUT_SEED = 4242
+"""The seed of the held-out floors the fine-tuning scripts measure success on."""
+
+
+def procedural_floors(room: str, count: int, seed: int) -> list:
+    """The centred floors of ``count`` procedural rooms of ``seed``."""
     return [lay.centred().floor for lay in generate_layouts(room, count, seed=seed)]
 
 
@@ -53,7 +58,7 @@ def cat(batches: list[SceneBatch]) -> SceneBatch:
 def cached_rooms(path: str, spec, cfg) -> SceneBatch:
     """The searched rooms of a ``--cache`` file, on their floors (regenerated from the seed it records)."""
     fields = torch.load(path)
-    floors = training_floors(cfg.room, len(fields["labels"]), fields.get("floor_seed", cfg.floor_seed))
+    floors = procedural_floors(cfg.room, len(fields["labels"]), fields.get("floor_seed", cfg.floor_seed))
     return SceneBatch(spec, *(fields[k] for k in FIELDS), floors)
 
 
@@ -113,7 +118,8 @@ def held_out_report(policy, cfg, task: str, other: list, out: str | None = None)
     """A ``report`` for :func:`fine_tune`: the loss and the task's success on the ``other`` floors, and with ``out`` the
     run folder written (:func:`save_run`)."""
     def report(step: int, loss: float) -> None:
-        tqdm.write(f"step {step}: loss {loss:.4f}; {task} on {len(other)} other floors {success(policy, other, task):.1%}")
+        tqdm.write(f"step {step}: loss {loss:.4f}; {task} on {len(other)} other floors "
+                   f"{success(policy, other, task):.1%}")
         if out:
             save_run(policy, cfg, out)
     return report
@@ -160,12 +166,12 @@ def main(argv=None) -> None:
                          "a run of its own)")
     else:
         seed = cfg.floor_seed if args.floor_seed is None else args.floor_seed
-        rooms = searched_rooms(policy, training_floors(cfg.room, args.rooms, seed), args.task, generator, args.margin)
+        rooms = searched_rooms(policy, procedural_floors(cfg.room, args.rooms, seed), args.task, generator, args.margin)
         if args.cache:
             torch.save({"floor_seed": seed, **{k: getattr(rooms, k) for k in FIELDS}}, args.cache[0])
     floors = rooms.floors
     print(f"{len(rooms)} searched rooms: {args.task} {task_results(args.task, rooms).mean():.1%}")
-    other = [lay.centred().floor for lay in generate_layouts(cfg.room, args.other_floors, seed=4242)]
+    other = procedural_floors(cfg.room, args.other_floors, HELD_OUT_SEED)
     own = floors[:args.other_floors]
     print(f"step 0: {args.task} on {len(other)} other floors {success(policy, other, args.task):.1%}, on the first "
           f"{len(own)} of its training floors {success(policy, own, args.task):.1%}", flush=True)

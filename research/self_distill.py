@@ -23,10 +23,10 @@ from tqdm import tqdm
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from search_sft import CHUNK, FIELDS, cat, fine_tune, held_out_report, success, training_floors  # noqa: E402
+from search_sft import (CHUNK, FIELDS, HELD_OUT_SEED, cat, fine_tune, held_out_report, procedural_floors,  # noqa: E402
+                        success)
 from agents.train import ADAPTERS_DIR, load_train_config  # noqa: E402
 from descent_offline import build_with_targets  # noqa: E402
-from iarcs_env.datasets.procedural import generate_layouts  # noqa: E402
 from iarcs_env.metrics import evaluate_batch  # noqa: E402
 from iarcs_env.scene import SceneBatch  # noqa: E402
 from iarcs_env.tasks import task_results  # noqa: E402
@@ -82,11 +82,11 @@ def main(argv=None) -> None:
     seed = cfg.floor_seed if args.floor_seed is None else args.floor_seed
     if args.cache and Path(args.cache).exists():
         fields = torch.load(args.cache)
-        floors = training_floors(cfg.room, fields["num_floors"], fields["floor_seed"])
+        floors = procedural_floors(cfg.room, fields["num_floors"], fields["floor_seed"])
         rooms = SceneBatch(policy.prior.spec, *(fields[k] for k in FIELDS), [floors[i] for i in fields["floor_index"]])
         index = fields["floor_index"]
     else:
-        rooms, index = own_rooms(policy, training_floors(cfg.room, args.rooms, seed), args.per_floor, args.task,
+        rooms, index = own_rooms(policy, procedural_floors(cfg.room, args.rooms, seed), args.per_floor, args.task,
                                  generator, args.keep == "passing")
         if args.cache:
             torch.save({"floor_seed": seed, "num_floors": args.rooms, "floor_index": index,
@@ -94,8 +94,9 @@ def main(argv=None) -> None:
     if not len(rooms):
         raise SystemExit(f"no room passed {args.task} cleanly: sample more floors (--rooms) or more rooms a floor "
                          "(--per-floor)")
-    print(f"{len(rooms)} rooms kept on {len(set(index))} floors: {args.task} {task_results(args.task, rooms).mean():.1%}")
-    other = [lay.centred().floor for lay in generate_layouts(cfg.room, args.other_floors, seed=4242)]
+    print(f"{len(rooms)} rooms kept on {len(set(index))} floors: {args.task} "
+          f"{task_results(args.task, rooms).mean():.1%}")
+    other = procedural_floors(cfg.room, args.other_floors, HELD_OUT_SEED)
     print(f"step 0: {args.task} on {len(other)} other floors {success(policy, other, args.task):.1%}", flush=True)
     fine_tune(policy, rooms, policy.trainable_parameters(), args.steps, args.lr, generator, args.eval_every,
               held_out_report(policy, cfg, args.task, other, args.out), args.batch, args.t_range)

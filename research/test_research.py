@@ -907,5 +907,6 @@ def test_restore_probe_puts_each_class_back_to_find_whose_drift_costs_the_pass()
     probe = load("restore_probe")
     handed = search.search_room(batch_float64([boxed_in()]), "wheelchair")  # the bed pulled off the nightstand's wall
     restored = batch_float64([boxed_in().centred()])  # the bed drifted back: the nightstand boxed in again
-    parts = dict(part.split(" ", 1) for part in probe.put_back(restored, handed, "wheelchair", min_objects=1).split("; "))
+    text = probe.put_back(restored, handed, "wheelchair", min_objects=1)
+    parts = dict(part.split(" ", 1) for part in text.split("; "))
     assert parts == {"double_bed": "1.08 m, 100.0%", "nightstand": "0.00 m, 0.0%", "wardrobe": "0.00 m, 0.0%"}
