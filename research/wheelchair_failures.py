@@ -60,8 +60,8 @@ def main(args: list[str]) -> None:
         top = ", ".join(f"{c} {k / n:.2f}" for c, k in h["unreached"].most_common(4))
         no_stands = tasks.task_results("wheelchair", [without(lay, {"nightstand"}) for lay in layouts]).mean()
         no_both = tasks.task_results("wheelchair", [without(lay, {"nightstand", "wardrobe"}) for lay in layouts]).mean()
-        wider = ", ".join(f"{m * 100:.0f} cm {np.mean(w['reach'] & w['disk']):.1%}"
-                          for m, w in ((m, halves(layouts, margin=m)) for m in (0.05, 0.1)))
+        by_margin = {margin: halves(layouts, margin=margin) for margin in (0.05, 0.1)}
+        wider = ", ".join(f"{m * 100:.0f} cm {np.mean(w['reach'] & w['disk']):.1%}" for m, w in by_margin.items())
         print(f"{name or Path(path).stem} ({n} rooms): passes {np.mean(h['reach'] & h['disk']):.1%} (every object "
               f"reached {h['reach'].mean():.1%}, turning disk {h['disk'].mean():.1%}); unreached per room: {top}; "
               f"passes without nightstands {no_stands:.1%}, without nightstands and wardrobes {no_both:.1%}; "
