@@ -834,7 +834,6 @@ def test_notch_probe_conditions_on_the_bounding_rectangle_but_counts_against_the
     assert blind / n_blind > 3 * seen / n_seen
 
 
-
 def test_self_distill_keeps_only_clean_passes_and_fine_tunes_on_its_own_rooms(tmp_path, capsys):
     import dataclasses
 
