@@ -6,6 +6,7 @@ Run by hand, not by ``make test``::
 
 from __future__ import annotations
 
+import copy
 import importlib.util
 import json
 import re
@@ -909,3 +910,40 @@ def test_restore_probe_puts_each_class_back_to_find_whose_drift_costs_the_pass()
     text = probe.put_back(restored, handed, "wheelchair", min_objects=1)
     parts = dict(part.split(" ", 1) for part in text.split("; "))
     assert parts == {"double_bed": "1.08 m, 100.0%", "nightstand": "0.00 m, 0.0%", "wardrobe": "0.00 m, 0.0%"}
+
+
+def test_diffusion_dpo_prefers_the_searched_room_to_the_sampled_one_against_its_frozen_start(tmp_path):
+    from conftest import perturb_zero_init, write_tiny_train_config
+    from agents.train import load_train_config
+    from descent_offline import build_with_targets
+    from iarcs_env.metrics import batch_float64
+
+    dpo = load("diffusion_dpo")
+    config = write_tiny_train_config(tmp_path, algorithm="physics-gradient", adapt=["position", "yaw"])
+    perturb_zero_init(ScenePrior.load(tmp_path / "prior.pt"), 0).save(tmp_path / "prior.pt")  # gradients flow
+    _, policy = build_with_targets(load_train_config(config))
+    reference = copy.deepcopy(policy)
+    loser = batch_float64([boxed_in()] * 4)
+    winner, loser = dpo.cat([search.search_rooms(loser, "wheelchair")]), dpo.cat([loser])  # float32, as the script
+    assert not torch.equal(winner.translations, loser.translations)
+
+    def margin() -> float:  # (e(w) - e_ref(w)) - (e(l) - e_ref(l)) on fixed noise, every timestep of a grid
+        prior, total = policy.prior, 0.0
+        for t in range(0, prior.schedule.num_train_timesteps, 100):
+            gaps = []
+            for rooms in (winner, loser):
+                x0, labels = rooms.encode(prior.stats), rooms.labels
+                cond, weight = prior.floor_condition(rooms.floors), dpo.adapted_object_weights(policy, x0)
+                steps = torch.full((len(x0),), t)
+                x_t = prior.with_classes(prior.schedule.q_sample(x0, steps, torch.zeros_like(x0)), steps, labels,
+                                         torch.Generator().manual_seed(0))
+                with torch.no_grad():
+                    gaps.append(float((dpo.per_room_square(policy, x0, x_t, steps, cond, labels, weight)
+                                       - dpo.per_room_square(reference, x0, x_t, steps, cond, labels, weight)).mean()))
+            total += gaps[0] - gaps[1]
+        return total
+
+    assert margin() == 0.0
+    dpo.dpo_train(policy, reference, winner, loser, steps=30, lr=3e-3, beta=100.0,
+                  generator=torch.Generator().manual_seed(0), every=30, report=lambda step, loss: None, batch=4)
+    assert margin() < 0  # the searched room now denoised better than the sampled one, relative to the start
