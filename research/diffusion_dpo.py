@@ -33,11 +33,10 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from layout_search import search_rooms  # noqa: E402
-from search_sft import CHUNK, FIELDS, HELD_OUT_SEED, cat, held_out_report, procedural_floors, success  # noqa: E402
+from search_sft import (CHUNK, FIELDS, HELD_OUT_SEED, cat, held_out_report, procedural_floors, success,  # noqa: E402
+                        task_policy)
 from self_distill import clean_passes  # noqa: E402
 from agents.physics_gradient import adapted_object_weights  # noqa: E402
-from agents.train import ADAPTERS_DIR, load_train_config  # noqa: E402
-from descent_offline import build_with_targets  # noqa: E402
 from iarcs_env.scene import SceneBatch  # noqa: E402
 
 
@@ -147,11 +146,7 @@ def main(argv=None) -> None:
     parser.add_argument("--cache", help="a file for the pairs: written once, then read")
     parser.add_argument("--out", help="write a run folder with the adapter")
     args = parser.parse_args(argv)
-    torch.set_num_threads(1)
-    cfg = load_train_config(args.config)
-    _, policy = build_with_targets(cfg)
-    if args.init:
-        policy.load_adapter(Path(args.init) / ADAPTERS_DIR / cfg.adapter, cfg.adapter)
+    cfg, policy = task_policy(args.config, args.init)
     reference = copy.deepcopy(policy)
     for p in reference.parameters():
         p.requires_grad_(False)

@@ -25,10 +25,8 @@ import torch
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from descent_offline import build_with_targets  # noqa: E402
 from eval_prior import denoise_chain  # noqa: E402
-from search_sft import cached_rooms  # noqa: E402
-from agents.train import ADAPTERS_DIR, load_train_config  # noqa: E402
+from search_sft import cached_rooms, task_policy  # noqa: E402
 from iarcs_env.metrics import evaluate_layouts  # noqa: E402
 from iarcs_env.schedule import standard_normal  # noqa: E402
 from iarcs_env.scene import SceneBatch  # noqa: E402
@@ -117,11 +115,7 @@ def main(argv=None) -> None:
     parser.add_argument("--by-class", action="store_true",
                         help="with --task: per class, how far its objects moved and the pass rate with them put back")
     args = parser.parse_args(argv)
-    torch.set_num_threads(1)
-    cfg = load_train_config(args.config)
-    _, policy = build_with_targets(cfg)
-    if args.init:
-        policy.load_adapter(Path(args.init) / ADAPTERS_DIR / cfg.adapter, cfg.adapter)
+    cfg, policy = task_policy(args.config, args.init)
     rooms = load_rooms(args.rooms, policy.prior.spec, cfg, args.count)
     print(f"{len(rooms)} rooms as handed: {figures(rooms, args.task)}")
     generator = torch.Generator().manual_seed(1)

@@ -132,6 +132,17 @@ def save_run(policy, cfg, out: str) -> None:
     policy.save_adapter(Path(out) / ADAPTERS_DIR)
 
 
+def task_policy(config: str, init: str | None = None, lora_targets: str | None = None):
+    """(config, policy) of a task training config on one torch thread, the adapter of the run folder ``init`` loaded
+    when given (``lora_targets``: as :func:`descent_offline.build_with_targets`)."""
+    torch.set_num_threads(1)
+    cfg = load_train_config(config)
+    _, policy = build_with_targets(cfg, lora_targets)
+    if init:
+        policy.load_adapter(Path(init) / ADAPTERS_DIR / cfg.adapter, cfg.adapter)
+    return cfg, policy
+
+
 def main(argv=None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("config", help="a task training config (room, prior, init_adapter, adapt, required_objects)")
@@ -153,11 +164,7 @@ def main(argv=None) -> None:
     parser.add_argument("--lora-targets", help="a regular expression of the layers the LoRA adapts, in place of the "
                         "attention projections (as research/descent_offline.py's)")
     args = parser.parse_args(argv)
-    torch.set_num_threads(1)
-    cfg = load_train_config(args.config)
-    _, policy = build_with_targets(cfg, args.lora_targets)
-    if args.init:
-        policy.load_adapter(Path(args.init) / ADAPTERS_DIR / cfg.adapter, cfg.adapter)
+    cfg, policy = task_policy(args.config, args.init, args.lora_targets)
     prior, generator = policy.prior, torch.Generator().manual_seed(cfg.seed)
     if args.cache and all(Path(c).exists() for c in args.cache):
         rooms = cat([cached_rooms(c, prior.spec, cfg) for c in args.cache])

@@ -24,9 +24,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from search_sft import (CHUNK, FIELDS, HELD_OUT_SEED, cat, fine_tune, held_out_report, procedural_floors,  # noqa: E402
-                        success)
-from agents.train import ADAPTERS_DIR, load_train_config  # noqa: E402
-from descent_offline import build_with_targets  # noqa: E402
+                        success, task_policy)
 from iarcs_env.metrics import evaluate_batch  # noqa: E402
 from iarcs_env.scene import SceneBatch  # noqa: E402
 from iarcs_env.tasks import task_results  # noqa: E402
@@ -74,10 +72,7 @@ def main(argv=None) -> None:
     parser.add_argument("--cache", help="a file for the kept rooms: written once, then read")
     parser.add_argument("--out", help="write a run folder with the fine-tuned adapter")
     args = parser.parse_args(argv)
-    torch.set_num_threads(1)
-    cfg = load_train_config(args.config)
-    _, policy = build_with_targets(cfg)
-    policy.load_adapter(Path(args.init) / ADAPTERS_DIR / cfg.adapter, cfg.adapter)
+    cfg, policy = task_policy(args.config, args.init)
     generator = torch.Generator().manual_seed(cfg.seed)
     seed = cfg.floor_seed if args.floor_seed is None else args.floor_seed
     if args.cache and Path(args.cache).exists():
