@@ -40,11 +40,6 @@ from agents.physics_gradient import adapted_object_weights  # noqa: E402
 from iarcs_env.scene import SceneBatch  # noqa: E402
 
 
-def rows(batch: SceneBatch, keep) -> SceneBatch:
-    keep = torch.as_tensor(np.asarray(keep, dtype=np.int64))
-    return SceneBatch(batch.spec, *(getattr(batch, k)[keep] for k in FIELDS), [batch.floors[int(i)] for i in keep])
-
-
 def searched_pairs(policy, floors, task: str, generator, margin: float) -> tuple[SceneBatch, SceneBatch, list[int]]:
     """(winners, losers, their floors' indices): the policy's room of each floor searched, against it as sampled, where
     only the search passes."""
@@ -54,8 +49,8 @@ def searched_pairs(policy, floors, task: str, generator, margin: float) -> tuple
             sampled = policy.sample(floors[i:i + CHUNK], generator)
         searched = search_rooms(sampled, task, margin=margin)
         keep = np.nonzero(clean_passes(searched, task) & ~clean_passes(sampled, task))[0]
-        wins.append(rows(searched, keep))
-        losses.append(rows(sampled, keep))
+        wins.append(searched[keep])
+        losses.append(sampled[keep])
         index += [i + int(j) for j in keep]
     return cat(wins), cat(losses), index
 
@@ -76,8 +71,8 @@ def own_pairs(policy, floors, per_floor: int, task: str, generator) -> tuple[Sce
             w += [floor * per_floor + int(j) for j in good[:pairs]]
             l_ += [floor * per_floor + int(j) for j in bad[:pairs]]
             index += [i + floor] * pairs
-        wins.append(rows(batch, w))
-        losses.append(rows(batch, l_))
+        wins.append(batch[np.asarray(w, dtype=np.int64)])
+        losses.append(batch[np.asarray(l_, dtype=np.int64)])
     return cat(wins), cat(losses), index
 
 
@@ -102,7 +97,7 @@ def dpo_train(policy, reference, wins: SceneBatch, losses: SceneBatch, steps: in
     for step in tqdm(range(1, steps + 1), desc="DPO on the pairs", unit="step"):
         pick = torch.randint(0, len(wins), (batch,), generator=generator)
         t = torch.randint(0, prior.schedule.num_train_timesteps, (batch,), generator=generator)
-        noise = torch.randn(data[0][0][pick].shape, generator=generator)
+        noise = torch.randn((batch, *data[0][0].shape[1:]), generator=generator)
         gaps = []
         for x0, cond, labels, weight in data:
             x0, cond, labels, weight = x0[pick], cond[pick], labels[pick], weight[pick]
@@ -120,9 +115,9 @@ def dpo_train(policy, reference, wins: SceneBatch, losses: SceneBatch, steps: in
         log["accuracy"].append((margin < 0).float().mean().item())
         log["margin"].append(margin.mean().item())
         if step % every == 0 or step == steps:
-            tqdm.write(f"step {step}: DPO loss {np.mean(log['loss']):.4f}, winner preferred "
-                       f"{np.mean(log['accuracy']):.1%}, margin {np.mean(log['margin']):+.5f}")
-            report(step, np.mean(log["loss"]))
+            tqdm.write(f"step {step}: winner preferred {np.mean(log['accuracy']):.1%}, margin "
+                       f"{np.mean(log['margin']):+.5f}")
+            report(step, np.mean(log["loss"]))  # the DPO loss and the held-out success
             log = {k: [] for k in log}
 
 
