@@ -1,8 +1,9 @@
 """Ship a paper task's stage-2 adapter from an ``iarcs train`` run: its exported LoRA weights in float16 (half the
 size; the samples keep their classes and move by under 4 mm), the reward program it was trained with and the task's
 prompt, laid out as an ``iarcs generate`` library entry in ``agents/checkpoints/<room>_small_tasks/<task>/``, with
-``training.json``: the run's epochs and training time, with those of the run it continued, if any (what
-``experiments/cost_table.py`` charges an adapter).
+``training.json``: the run's epochs and training time, with those of the runs it continued, if any (what
+``experiments/cost_table.py`` charges an adapter; an offline fine-tuning of ``research/search_sft.py`` adds its time
+from its ``tb/``, no epochs).
 
     .venv/bin/python experiments/ship_task_adapter.py out/train/t41_two_nightstands
 """
@@ -39,6 +40,20 @@ def training_runs(run_dir: Path) -> list[Path]:
     return (training_runs(earlier) if earlier and (earlier / "config.yaml").exists() else []) + [run_dir]
 
 
+def training_record(run_dir: Path) -> dict:
+    """``training.json``: the run, its phases' epochs (``iarcs train`` runs, which checkpoint; an offline fine-tuning
+    has none) and their training time."""
+    from agents.train import CHECKPOINT_DIR, load_train_config
+
+    runs = training_runs(run_dir)
+    training = {"run": str(run_dir), "epochs": sum(load_train_config(r / "config.yaml").epochs for r in runs
+                                                   if (r / CHECKPOINT_DIR).is_dir()),
+                "train_seconds": round(sum(train_seconds(r) for r in runs), 1)}
+    if len(runs) > 1:
+        training["phases"] = [str(r) for r in runs]
+    return training
+
+
 def ship(run_dir: Path) -> Path:
     from safetensors.torch import load_file, save_file
 
@@ -59,12 +74,7 @@ def ship(run_dir: Path) -> Path:
         card.unlink()
     shutil.copytree(run_dir / "reward", dest / "reward")
     (dest / "constraint.txt").write_text(task.prompt + "\n")
-    runs = training_runs(run_dir)
-    training = {"run": str(run_dir), "epochs": sum(load_train_config(r / "config.yaml").epochs for r in runs),
-                "train_seconds": round(sum(train_seconds(r) for r in runs), 1)}
-    if len(runs) > 1:
-        training["phases"] = [str(r) for r in runs]
-    (dest / "training.json").write_text(json.dumps(training, indent=1) + "\n")
+    (dest / "training.json").write_text(json.dumps(training_record(run_dir), indent=1) + "\n")
     return dest
 
 

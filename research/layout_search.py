@@ -36,13 +36,22 @@ SCORES = {"wheelchair": (wheelchair_score, 3.0)}
 """Task -> (score of a batch of rooms and a margin, the score at which a room passes)."""
 
 
-def placements(room: SceneBatch, i: int, grid: float) -> SceneBatch:
+def placements(room: SceneBatch, i: int, grid: float, radius: float | None = None) -> SceneBatch:
     """Copies of the one-room batch ``room`` with object ``i`` at every grid point of the floor's bounds in each of
-    its four wall-aligned turns, kept where it is on the floor and clear of the other ground objects."""
-    lo, hi = room.floors[0].vertices.min(0), room.floors[0].vertices.max(0)
+    its four wall-aligned turns, kept where it is on the floor and clear of the other ground objects; with
+    ``radius`` (m), only at the grid points within that distance of where it stands, in its own turn."""
+    if radius is None:
+        lo, hi = room.floors[0].vertices.min(0), room.floors[0].vertices.max(0)
+        turns = float(room.yaws[0, i]) + np.arange(4) * math.pi / 2
+    else:
+        centre = room.translations[0, i, [0, 2]].numpy()
+        lo, hi, turns = centre - radius, centre + radius, np.array([float(room.yaws[0, i])])
     xs, zs = np.arange(lo[0], hi[0] + 1e-9, grid), np.arange(lo[1], hi[1] + 1e-9, grid)
-    turns = float(room.yaws[0, i]) + np.arange(4) * math.pi / 2
-    x, z, yaw = (torch.from_numpy(a.ravel()) for a in np.meshgrid(xs, zs, turns, indexing="ij"))
+    x, z, yaw = (a.ravel() for a in np.meshgrid(xs, zs, turns, indexing="ij"))
+    if radius is not None:
+        near = np.hypot(x - centre[0], z - centre[1]) <= radius + 1e-9
+        x, z, yaw = x[near], z[near], yaw[near]
+    x, z, yaw = (torch.from_numpy(a) for a in (x, z, yaw))
     k = len(x)
     trans, yaws = room.translations.repeat(k, 1, 1), room.yaws.repeat(k, 1)
     trans[:, i, 0], trans[:, i, 2], yaws[:, i] = x.to(trans), z.to(trans), yaw.to(yaws)
@@ -54,9 +63,11 @@ def placements(room: SceneBatch, i: int, grid: float) -> SceneBatch:
     return batch[keep.numpy()]
 
 
-def search_room(room: SceneBatch, task: str, grid: float = 0.25, sweeps: int = 2, margin: float = 0.0) -> SceneBatch:
+def search_room(room: SceneBatch, task: str, grid: float = 0.25, sweeps: int = 2, margin: float = 0.0,
+                radius: float | None = None) -> SceneBatch:
     """The one-room batch ``room`` (float64 geometry) rearranged greedily for ``task`` (module doc), scored with
-    ``margin``: rooms that pass with room to spare, so that they still pass placed a little off."""
+    ``margin``: rooms that pass with room to spare, so that they still pass placed a little off; with ``radius``,
+    each object moved by at most that much a sweep, its turn kept (:func:`placements`)."""
     if task not in SCORES:
         raise ValueError(f"no layout search for task {task!r}; tasks with one: {', '.join(SCORES)}")
     score, passing = SCORES[task]
@@ -67,7 +78,7 @@ def search_room(room: SceneBatch, task: str, grid: float = 0.25, sweeps: int = 2
         for i in (i for i in np.argsort(-area) if ground[i]):
             if best >= passing:
                 return room
-            options = placements(room, i, grid)
+            options = placements(room, i, grid, radius)
             if not len(options):
                 continue
             got = np.concatenate([score(options[s:s + CHUNK], margin) for s in range(0, len(options), CHUNK)])

@@ -116,12 +116,21 @@ def fine_tune(policy, rooms: SceneBatch, params: list, steps: int, lr: float, ge
 
 def held_out_report(policy, cfg, task: str, other: list, out: str | None = None):
     """A ``report`` for :func:`fine_tune`: the loss and the task's success on the ``other`` floors, and with ``out`` the
-    run folder written (:func:`save_run`)."""
+    run folder written (:func:`save_run`) and both figures in its ``tb/``, whose span from this call to the last
+    report is the run's training time (what ``experiments/ship_task_adapter.py`` charges)."""
+    writer = None
+    if out:
+        from torch.utils.tensorboard import SummaryWriter
+        writer = SummaryWriter(str(Path(out) / "tb"))
+
     def report(step: int, loss: float) -> None:
-        tqdm.write(f"step {step}: loss {loss:.4f}; {task} on {len(other)} other floors "
-                   f"{success(policy, other, task):.1%}")
+        rate = success(policy, other, task)
+        tqdm.write(f"step {step}: loss {loss:.4f}; {task} on {len(other)} other floors {rate:.1%}")
         if out:
             save_run(policy, cfg, out)
+            writer.add_scalar("fine_tune/loss", loss, step)
+            writer.add_scalar(f"fine_tune/{task}_held_out", rate, step)
+            writer.flush()
     return report
 
 
@@ -166,6 +175,8 @@ def main(argv=None) -> None:
     args = parser.parse_args(argv)
     cfg, policy = task_policy(args.config, args.init, args.lora_targets)
     prior, generator = policy.prior, torch.Generator().manual_seed(cfg.seed)
+    other = procedural_floors(cfg.room, args.other_floors, HELD_OUT_SEED)
+    report = held_out_report(policy, cfg, args.task, other, args.out)  # before the search: its time counts too
     if args.cache and all(Path(c).exists() for c in args.cache):
         rooms = cat([cached_rooms(c, prior.spec, cfg) for c in args.cache])
     elif len(args.cache) > 1:
@@ -178,12 +189,11 @@ def main(argv=None) -> None:
             torch.save({"floor_seed": seed, **{k: getattr(rooms, k) for k in FIELDS}}, args.cache[0])
     floors = rooms.floors
     print(f"{len(rooms)} searched rooms: {args.task} {task_results(args.task, rooms).mean():.1%}")
-    other = procedural_floors(cfg.room, args.other_floors, HELD_OUT_SEED)
     own = floors[:args.other_floors]
     print(f"step 0: {args.task} on {len(other)} other floors {success(policy, other, args.task):.1%}, on the first "
           f"{len(own)} of its training floors {success(policy, own, args.task):.1%}", flush=True)
-    fine_tune(policy, rooms, policy.trainable_parameters(), args.steps, args.lr, generator, args.eval_every,
-              held_out_report(policy, cfg, args.task, other, args.out), args.batch)
+    fine_tune(policy, rooms, policy.trainable_parameters(), args.steps, args.lr, generator, args.eval_every, report,
+              args.batch)
 
 
 if __name__ == "__main__":

@@ -725,6 +725,20 @@ def test_layout_search_frees_a_boxed_in_nightstand_with_the_rooms_own_furniture_
     np.testing.assert_allclose(again.to_layouts()[0].translations, moved.translations, atol=1e-9)
 
 
+
+def test_layout_search_within_a_radius_moves_each_object_at_most_that_far_in_its_own_turn():
+    from iarcs_env.metrics import batch_float64
+    from iarcs_env.tasks import task_results
+
+    start = batch_float64([boxed_in()])  # the nightstand's 0.5 m gap must widen to 0.9 m: the bed moved 0.4 m or more
+    (room,) = start.to_layouts()
+    for radius, passes in ((0.2, False), (0.5, True)):
+        (moved,) = search.search_room(start, "wheelchair", grid=0.05, sweeps=1, radius=radius).to_layouts()
+        assert task_results("wheelchair", [moved])[0] == passes
+        assert np.linalg.norm((moved.translations - room.translations)[:, 0:3:2], axis=1).max() <= radius + 1e-9
+        np.testing.assert_allclose(moved.yaws, room.yaws)
+        assert search.wheelchair_score(batch_float64([moved]))[0] >= search.wheelchair_score(start)[0]
+
 def test_layout_search_rooms_keeps_the_batch_and_rejects_tasks_without_a_search():
     from iarcs_env.metrics import batch_float64
     from iarcs_env.tasks import task_results
@@ -762,6 +776,10 @@ def test_search_sft_caches_searched_rooms_per_floor_seed_and_trains_on_them_toge
                           "--eval-every", "2", "--out", str(tmp_path / "run")])
     out = capsys.readouterr().out
     assert "6 searched rooms: wheelchair" in out and "step 2: loss" in out
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+    (events,) = (tmp_path / "run" / "tb").glob("events.out.tfevents.*")
+    scalars = EventAccumulator(str(events)).Reload().Tags()["scalars"]
+    assert {"fine_tune/loss", "fine_tune/wheelchair_held_out"} <= set(scalars)  # its time, for ship_task_adapter.py
     policy, cfg = load_trained_policy(tmp_path / "run")
     assert cfg.adapt == ["position", "yaw"]
     with pytest.raises(SystemExit, match="missing: .*r7.pt"):

@@ -5,6 +5,7 @@ from below what an adapter that only moves and turns (``adapt: [position, yaw]``
 greedy search misses layouts that need two objects moved at once.
 
     .venv/bin/python research/wheelchair_search.py SCENES.json --out SEARCHED.json [--rooms 100 --grid 0.25]
+    .venv/bin/python research/wheelchair_search.py SCENES.json --out NEAR.json --radius 0.2 --grid 0.05 --sweeps 1
     .venv/bin/python research/wheelchair_failures.py sampled=SCENES.json searched=SEARCHED.json
 """
 
@@ -34,6 +35,9 @@ def main(argv=None) -> None:
     parser.add_argument("--rooms", type=int, help="only the first N rooms")
     parser.add_argument("--grid", type=float, default=0.25, help="spacing (m) of the placements tried")
     parser.add_argument("--sweeps", type=int, default=2, help="passes over the room's objects")
+    parser.add_argument("--radius", type=float,
+                        help="move each object at most this far (m) a sweep, in its own turn: how much of the task a "
+                             "more precise placement of the same layout would pass")
     args = parser.parse_args(argv)
     torch.set_num_threads(1)
     layouts = load_layouts(args.scenes, "bedroom")[:args.rooms]
@@ -41,7 +45,7 @@ def main(argv=None) -> None:
     for lay in tqdm(layouts, desc="rooms searched", unit="room"):
         room = batch_float64([lay])
         before.append(wheelchair_score(room)[0])
-        room = search_room(room, "wheelchair", args.grid, args.sweeps)
+        room = search_room(room, "wheelchair", args.grid, args.sweeps, radius=args.radius)
         after.append(wheelchair_score(room)[0])
         out += room.to_layouts()
     save_layouts(out, args.out)

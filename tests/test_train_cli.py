@@ -247,3 +247,25 @@ def test_a_second_phase_is_charged_with_the_run_it_continues(tmp_path):
         (run / "config.yaml").write_text(f"room: bedroom\nadapter: reach_1m\ninit_adapter: {init}\nepochs: 3\n")
     assert training_runs(second) == [first, second]
     assert training_runs(fresh) == [fresh]
+
+
+def test_an_offline_fine_tuning_phase_is_charged_its_time_and_no_epochs(tmp_path):
+    """A phase without a checkpoint folder (research/search_sft.py's run) adds the span of its tb/ and no epochs."""
+    from torch.utils.tensorboard import SummaryWriter
+
+    from experiments.ship_task_adapter import training_record
+
+    tuned, trained = tmp_path / "sft", tmp_path / "rl"
+    for run, init in ((tuned, "default"), (trained, str(tuned / "adapters" / "wheelchair"))):
+        run.mkdir()
+        (run / "config.yaml").write_text(f"room: bedroom\nadapter: wheelchair\ninit_adapter: {init}\nepochs: 40\n")
+        writer = SummaryWriter(str(run / "tb"))
+        for step in range(2):
+            writer.add_scalar("loss", 1.0, step)
+            writer.flush()
+            time.sleep(0.3)
+        writer.close()
+    (trained / "checkpoint").mkdir()
+    record = training_record(trained)
+    assert record["epochs"] == 40 and record["phases"] == [str(tuned), str(trained)]
+    assert 0.6 <= record["train_seconds"] < 3.0
